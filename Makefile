@@ -1,0 +1,46 @@
+# hipode-pipeline: every target makes the virtual environment on first use.
+PYTHON ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+TORCH_VERSION := 2.13.0
+STAMP := $(VENV)/.installed
+TASK ?= hopper-m-r
+ARGS ?=
+# Torch's worker threads spin on a busy 2-core machine; passive waiting keeps them polite.
+export OMP_WAIT_POLICY ?= PASSIVE
+
+.PHONY: setup test collect augment train datasets bench lint clean-venv
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	# torch pinned to the CPU build when absent: an unpinned torch pulls gigabytes of CUDA packages
+	$(BIN)/python -c "import torch" 2>/dev/null || $(BIN)/pip install -q "torch==$(TORCH_VERSION)"
+	$(BIN)/pip install -q -e ".[dev,plots]"
+	touch $(STAMP)
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -n 2 --dist loadfile $(ARGS)
+
+collect: $(STAMP)
+	$(BIN)/hipode collect $(TASK) $(ARGS)
+
+augment: $(STAMP)
+	$(BIN)/hipode augment $(TASK) $(ARGS)
+
+train: $(STAMP)
+	$(BIN)/hipode train $(TASK) $(ARGS)
+
+datasets: $(STAMP)
+	$(BIN)/hipode datasets list $(ARGS)
+
+bench: $(STAMP)
+	$(BIN)/python bench/collect.py $(ARGS)
+
+lint: $(STAMP)
+	$(BIN)/ruff check hipode_pipeline tests bench
+	$(BIN)/ruff format --check hipode_pipeline tests bench
+
+clean-venv:
+	rm -rf $(VENV)

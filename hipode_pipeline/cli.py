@@ -1,0 +1,22 @@
+"""The `hipode` command line: thin typer commands that parse, call one library function, print."""
+
+from __future__ import annotations
+
+import typer
+
+from hipode_pipeline.commands import augment, collect, datasets, tasks
+
+app = typer.Typer(
+    help="HIPODE: policy-decoupled, high-return data augmentation for offline RL.",
+    no_args_is_help=True,
+    pretty_exceptions_show_locals=False,
+    add_completion=False,
+)
+
+for group in (tasks, collect, datasets, augment):
+    group.register(app)
+
+
+@app.callback()
+def main() -> None:
+    """HIPODE: policy-decoupled, high-return data augmentation for offline RL."""

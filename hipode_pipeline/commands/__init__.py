@@ -1,0 +1,1 @@
+"""CLI command groups, one module each; `hipode_pipeline.cli` assembles them."""

@@ -1,0 +1,38 @@
+"""Errors a user can act on: each names what is wrong and what was expected.
+
+The CLI turns any `HipodeError` into a one-paragraph message on stderr and a non-zero exit
+code; everything else is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class HipodeError(Exception):
+    """Base of every error caused by the user's input, files or environment."""
+
+    exit_code = 2
+
+
+class DataFormatError(HipodeError):
+    """A dataset or artifact file does not have the content we need."""
+
+    def __init__(self, path: str | Path, field: str, expected: str, found: object = None):
+        self.path, self.field, self.expected, self.found = str(path), field, expected, found
+        message = f"{path}: field '{field}': expected {expected}"
+        if found is not None:
+            message += f", found {found}"
+        super().__init__(message)
+
+
+class UnknownTaskError(HipodeError):
+    """A task name that is not in the registry."""
+
+
+class DatasetNotFoundError(HipodeError):
+    """A dataset id or path that does not exist locally."""
+
+
+class OverwriteError(HipodeError):
+    """An output already exists and the user did not pass --force."""
