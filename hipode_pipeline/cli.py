@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import typer
 
-from hipode_pipeline.commands import augment, collect, datasets, tasks
+from hipode_pipeline.commands import augment, collect, datasets, merge, tasks, train
 
 app = typer.Typer(
     help="HIPODE: policy-decoupled, high-return data augmentation for offline RL.",
@@ -13,7 +13,7 @@ app = typer.Typer(
     add_completion=False,
 )
 
-for group in (tasks, collect, datasets, augment):
+for group in (tasks, collect, datasets, augment, merge, train):
     group.register(app)
 
 
