@@ -129,7 +129,8 @@ def validate_transitions(arrays: dict[str, np.ndarray], origin: str | Path) -> T
             continue
         if not np.issubdtype(array.dtype, np.number) or np.issubdtype(array.dtype, np.complexfloating):
             raise DataFormatError(origin, name, "a real-valued numeric array", array.dtype)
-        array = array.astype(np.float32, copy=False)
+        with np.errstate(over="ignore"):  # an out-of-range float64 becomes inf, reported just below
+            array = array.astype(np.float32, copy=False)
         bad = ~np.isfinite(array)
         if bad.any():
             first = int(np.argwhere(bad)[0][0])
