@@ -1,0 +1,425 @@
+"""HIPODE's five generators as one object: configuration, training (or loading from the cache
+under datasets/ keyed by source sha256, config hash and seed) and the sampling interface the
+generation step uses."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from hipode_pipeline.console import progress as progress_display
+from hipode_pipeline.data.normalizer import StateNormalizer
+from hipode_pipeline.data.transitions import Transitions
+from hipode_pipeline.device import select_device
+from hipode_pipeline.errors import DataFormatError, HipodeError
+from hipode_pipeline.models import training
+from hipode_pipeline.models.cvae import CVAE
+from hipode_pipeline.models.dynamics import LOSS_FORMS, DynamicsEnsemble
+from hipode_pipeline.models.value import PENALTY_FORMS, ValueEstimator
+
+MODEL_NAMES = ("state_transition", "value", "inverse_action", "inverse_reward", "dynamics")
+PROFILES = ("full", "quick")
+
+
+class GeneratorConfigError(HipodeError):
+    """A generator setting, profile name or override that is not valid."""
+
+
+@dataclass(frozen=True)
+class GeneratorConfig:
+    """Every setting of the five generators; [paper] and [decided] defaults from METHOD.md.
+
+    Budgets (steps) are per model and independent of the dataset size. The "full" profile
+    (these defaults) trained all five on hopper-m-r in 8.7 minutes on one thread of this
+    2-core machine while other jobs kept it busy (bench/results/models_precision.md), leaving
+    the rest of stage one's 15 minutes for generation and writing.
+    """
+
+    # --- the three CVAEs (state transition, inverse action, inverse reward) ---
+    cvae_hidden: int = 750  # [paper] one hidden layer of this width in encoder and decoder
+    latent_per_state_dim: int = 2  # [paper] latent dimension = this x state dimension
+    cvae_kl_weight: float = 0.5  # [decided, BCQ] loss = reconstruction MSE + this x KL
+    cvae_log_std_min: float = -4.0  # [decided, BCQ] encoder log sigma clamped from below
+    cvae_log_std_max: float = 15.0  # [decided, BCQ] encoder log sigma clamped from above
+    latent_clip: float = 0.5  # [decided, BCQ] sampling draws z ~ N(0, I) clipped to +-this
+    cvae_lr: float = 1e-3  # Adam step size of the CVAEs (BCQ's VAE setting)
+    cvae_batch_size: int = 256  # CVAE minibatch (BCQ: 100; 256 keeps the matmuls efficient)
+    cvae_keep_best: bool = True  # restore each CVAE's weights of lowest held-out loss
+    state_transition_steps: int = 30_000  # gradient steps of D_psi(s, z) -> s'
+    inverse_action_steps: int = 20_000  # steps of D_eps(s, s', z) -> a, tanh-bounded to data range
+    inverse_reward_steps: int = 15_000  # gradient steps of D_zeta(s, s', z) -> r
+    standardize_rewards: bool = True  # z-score rewards inside reward CVAE and dynamics; raw out
+    # --- value estimator with negative sampling ---
+    value_hidden: int = 256  # [paper] one hidden layer of this width
+    value_gamma: float = 0.99  # [decided] TD(0) discount on dataset transitions
+    value_tau: float = 0.005  # [paper] soft target update rate
+    value_target_every: int = 2  # [paper] soft-update the target every this many gradient steps
+    value_lr: float = 3e-4  # Adam step size of V (CORL's critic setting)
+    value_batch_size: int = 256  # value minibatch; as many negatives are drawn per step
+    value_steps: int = 50_000  # steps of V; final weights kept (TD loss moves with the target)
+    penalty: str = "target"  # [decided] negative-sampling penalty: target | l2 | contrastive
+    alpha: float = 1.0  # [paper] penalty weight (per task: stages/tasks.toml)
+    sigma: float = 1.0  # [paper] negatives s + U(-sigma, sigma)^d, z-scored units
+    # --- forward dynamics ensemble (d3rlpy 1.x ProbabilisticEnsembleDynamics) ---
+    dynamics_members: int = 5  # [paper via d3rlpy] ensemble size
+    dynamics_hidden: tuple[int, ...] = (256, 256)  # [d3rlpy 1.x encoder] hidden layers per member
+    dynamics_spectral_norm: bool = False  # d3rlpy 1.x: on; off here: it made members underfit
+    dynamics_loss: str = "gaussian_nll"  # gaussian_nll | d3rlpy (e^2 / std + sum log std)
+    dynamics_bound_loss_weight: float = 0.01  # [d3rlpy 1.x] pulls the log-std bounds together
+    dynamics_lr: float = 1e-3  # [d3rlpy 1.x] Adam step size
+    dynamics_weight_decay: float = 1e-4  # [d3rlpy 1.x] Adam weight decay
+    dynamics_batch_size: int = 256  # minibatch (d3rlpy: 100); each member learns from half of it
+    dynamics_steps: int = 30_000  # steps of the ensemble; best weights kept per member [decided]
+    # --- shared training settings ---
+    heldout_fraction: float = 0.05  # [decided] share of source transitions never trained on
+    heldout_eval_rows: int = 8192  # held-out rows used per evaluation (caps its cost)
+    eval_every: int = 500  # evaluate the held-out loss (and keep bests) every this many steps
+    checkpoint_every: int = 2_000  # write a resumable checkpoint every this many steps
+    # fp32 | bf16 autocast, per model family: bf16 kept held-out losses equal within seed noise
+    # and ran 1.3-1.7x faster on the CVAEs and the ensemble (bench/results/models_precision.md);
+    # the 256-wide value net gains nothing and its targets (~100s) need fp32 resolution
+    cvae_precision: str = "bf16"  # the three CVAEs' training matmuls
+    value_precision: str = "fp32"  # the value net's training matmuls
+    dynamics_precision: str = "bf16"  # the ensemble's training matmuls
+    normalizer_eps: float = 1e-3  # [decided] added to the state std before z-scoring
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "dynamics_hidden", tuple(int(h) for h in self.dynamics_hidden))
+        checks = {
+            "penalty": (self.penalty in PENALTY_FORMS, f"one of {PENALTY_FORMS}"),
+            "dynamics_loss": (self.dynamics_loss in LOSS_FORMS, f"one of {LOSS_FORMS}"),
+            "heldout_fraction": (0 < self.heldout_fraction < 1, "a fraction in (0, 1)"),
+            "latent_clip": (self.latent_clip > 0, "a positive number"),
+            "sigma": (self.sigma >= 0, "a non-negative number"),
+        }
+        for name in self.to_dict():
+            if name.endswith("_precision") and getattr(self, name) not in training.PRECISIONS:
+                checks[name] = (False, f"one of {training.PRECISIONS}")
+            if name.endswith(("_steps",)) and getattr(self, name) < 0:
+                checks[name] = (False, "a non-negative integer")
+            if (
+                name.endswith(("_batch_size", "_hidden", "_every", "_eval_rows", "_members"))
+                and name != "dynamics_hidden"
+            ):
+                if getattr(self, name) < 1:
+                    checks[name] = (False, "a positive integer")
+        for name, (ok, expected) in checks.items():
+            if not ok:
+                raise GeneratorConfigError(
+                    f"generator config field '{name}': expected {expected}, "
+                    f"found {getattr(self, name)!r}"
+                )
+
+    @classmethod
+    def profile(cls, name: str, **overrides: Any) -> GeneratorConfig:
+        """Profile "full" (the real run's budgets) or "quick" (a few hundred steps per model)."""
+        if name not in PROFILES:
+            raise GeneratorConfigError(f"generator profile '{name}': expected one of {PROFILES}")
+        values: dict[str, Any] = {}
+        if name == "quick":
+            values = {
+                "state_transition_steps": 300,
+                "inverse_action_steps": 300,
+                "inverse_reward_steps": 300,
+                "value_steps": 300,
+                "dynamics_steps": 300,
+                "eval_every": 50,
+                "checkpoint_every": 100,
+                "heldout_eval_rows": 2048,
+            }
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(overrides) - known)
+        if unknown:
+            raise GeneratorConfigError(
+                f"generator config override {unknown}: expected fields among {sorted(known)}"
+            )
+        return cls(**{**values, **overrides})
+
+    def to_dict(self) -> dict[str, Any]:
+        data = dataclasses.asdict(self)
+        data["dynamics_hidden"] = list(self.dynamics_hidden)
+        return data
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> GeneratorConfig:
+        return cls(**data)
+
+    def hash(self) -> str:
+        """sha256 over the sorted JSON of every field: the cache key of trained generators."""
+        return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()
+
+
+@dataclass(eq=False)
+class Generators:
+    """The five trained models, in eval mode on `device`, with where they came from."""
+
+    normalizer: StateNormalizer
+    state_transition: CVAE  # .sample(s_norm (B, ds), n) -> (B, n, ds) normalized next states
+    value: ValueEstimator  # (..., ds) normalized states -> (...) values
+    inverse_action: CVAE  # .sample(cat[s_norm, s'_norm] (B, 2ds), n) -> (B, n, da) raw actions
+    inverse_reward: CVAE  # .sample(cat[s_norm, s'_norm] (B, 2ds), n) -> (B, n, 1) raw rewards
+    dynamics: DynamicsEnsemble  # .sample(s_norm, a) -> (s'_norm (B, ds), r (B,))
+    config: GeneratorConfig
+    device: torch.device
+    cache_dir: Path
+    checkpoint_hashes: dict[str, str] = field(
+        default_factory=dict
+    )  # model -> sha256 of its weights file
+    training_report: dict[str, dict] = field(
+        default_factory=dict
+    )  # model -> TrainingRecord as a dict
+
+    def models(self) -> dict[str, nn.Module]:
+        return {name: getattr(self, name) for name in MODEL_NAMES}
+
+
+def cache_dir_for(cache_root: Path, source_sha256: str, config: GeneratorConfig, seed: int) -> Path:
+    return Path(cache_root) / f"{source_sha256[:16]}-{config.hash()[:12]}-seed{seed}"
+
+
+def build_models(
+    state_dim: int, action_dim: int, config: GeneratorConfig, seed: int
+) -> dict[str, nn.Module]:
+    """The five untrained models with seeded initial weights (on CPU)."""
+    latent = config.latent_per_state_dim * state_dim
+    cvae_args = dict(
+        latent_dim=latent,
+        hidden=config.cvae_hidden,
+        log_std_min=config.cvae_log_std_min,
+        log_std_max=config.cvae_log_std_max,
+        kl_weight=config.cvae_kl_weight,
+        latent_clip=config.latent_clip,
+    )
+    makers = {
+        "state_transition": lambda: CVAE(state_dim, state_dim, **cvae_args),
+        "value": lambda: ValueEstimator(
+            state_dim,
+            hidden=config.value_hidden,
+            gamma=config.value_gamma,
+            tau=config.value_tau,
+            target_update_every=config.value_target_every,
+            penalty=config.penalty,
+            alpha=config.alpha,
+            sigma=config.sigma,
+        ),
+        "inverse_action": lambda: CVAE(action_dim, 2 * state_dim, squash=True, **cvae_args),
+        "inverse_reward": lambda: CVAE(
+            1, 2 * state_dim, standardize_output=config.standardize_rewards, **cvae_args
+        ),
+        "dynamics": lambda: DynamicsEnsemble(
+            state_dim,
+            action_dim,
+            members=config.dynamics_members,
+            hidden=config.dynamics_hidden,
+            spectral_norm=config.dynamics_spectral_norm,
+            loss_form=config.dynamics_loss,
+            bound_loss_weight=config.dynamics_bound_loss_weight,
+        ),
+    }
+    models = {}
+    for name, make in makers.items():
+        with training.seeded_init(training.derive_seed(seed, f"init:{name}")):
+            models[name] = make()
+    return models
+
+
+def fit_settings(config: GeneratorConfig) -> dict[str, dict[str, Any]]:
+    """Per model: budget, optimizer settings and what best-weights keeping means for it."""
+    cvae_keep = "model" if config.cvae_keep_best else "none"
+    cvae = dict(
+        batch_size=config.cvae_batch_size,
+        lr=config.cvae_lr,
+        weight_decay=0.0,
+        keep_best=cvae_keep,
+        precision=config.cvae_precision,
+    )
+    return {
+        "state_transition": dict(steps=config.state_transition_steps, **cvae),
+        "value": dict(
+            steps=config.value_steps,
+            batch_size=config.value_batch_size,
+            lr=config.value_lr,
+            weight_decay=0.0,
+            keep_best="none",
+            precision=config.value_precision,
+        ),
+        "inverse_action": dict(steps=config.inverse_action_steps, **cvae),
+        "inverse_reward": dict(steps=config.inverse_reward_steps, **cvae),
+        "dynamics": dict(
+            steps=config.dynamics_steps,
+            batch_size=config.dynamics_batch_size,
+            lr=config.dynamics_lr,
+            weight_decay=config.dynamics_weight_decay,
+            keep_best="member",
+            precision=config.dynamics_precision,
+        ),
+    }
+
+
+def model_losses(
+    models: dict[str, nn.Module],
+) -> dict[str, tuple[training.LossFn, training.HeldoutFn]]:
+    """Per model: (training loss on a batch, held-out loss on a batch)."""
+    state, value, action, reward, dynamics = (models[n] for n in MODEL_NAMES)
+
+    def eval_generator(device: torch.device) -> torch.Generator:
+        # the same noise at every evaluation, so held-out readings are comparable
+        return torch.Generator(device=device).manual_seed(0)
+
+    def pair(b):
+        return torch.cat([b["s"], b["s_next"]], dim=-1)
+
+    return {
+        "state_transition": (
+            lambda b, g: state.loss(b["s_next"], b["s"], g),
+            lambda b: state.loss(b["s_next"], b["s"], eval_generator(b["s"].device))[0],
+        ),
+        "value": (
+            lambda b, g: value.loss(b["s"], b["r"], b["s_next"], b["terminal"], g),
+            lambda b: value.td_loss(b["s"], b["r"], b["s_next"], b["terminal"]),
+        ),
+        "inverse_action": (
+            lambda b, g: action.loss(b["a"], pair(b), g),
+            lambda b: action.loss(b["a"], pair(b), eval_generator(b["s"].device))[0],
+        ),
+        "inverse_reward": (
+            lambda b, g: reward.loss(b["r"].unsqueeze(-1), pair(b), g),
+            lambda b: reward.loss(b["r"].unsqueeze(-1), pair(b), eval_generator(b["s"].device))[0],
+        ),
+        "dynamics": (
+            lambda b, g: dynamics.loss(b["s"], b["a"], b["r"], b["s_next"], g),
+            lambda b: dynamics.heldout_losses(b["s"], b["a"], b["r"], b["s_next"]),
+        ),
+    }
+
+
+def set_data_scales(
+    models: dict[str, nn.Module], transitions: Transitions, config: GeneratorConfig
+) -> None:
+    """Action bounds and reward scales go into model buffers, so cached weights carry them."""
+    actions, rewards = transitions.actions, transitions.rewards.astype(np.float64)
+    # [decided] action bounds = the source's per-dimension range (D4RL MuJoCo data spans [-1, 1])
+    models["inverse_action"].set_output_bounds(
+        torch.from_numpy(actions.min(0)), torch.from_numpy(actions.max(0))
+    )
+    if config.standardize_rewards:
+        mean, std = float(rewards.mean()), float(rewards.std()) + 1e-6
+        models["inverse_reward"].set_output_scale(torch.tensor([mean]), torch.tensor([std]))
+        models["dynamics"].set_reward_scale(mean, std)
+
+
+def transition_tensors(
+    transitions: Transitions,
+    normalizer: StateNormalizer,
+    config: GeneratorConfig,
+    seed: int,
+    device: torch.device,
+) -> training.TensorData:
+    def put(array: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(array, dtype=np.float32)).to(device)
+
+    tensors = {
+        "s": put(normalizer.normalize(transitions.observations)),
+        "a": put(transitions.actions),
+        "r": put(transitions.rewards),
+        "s_next": put(normalizer.normalize(transitions.next_observations)),
+        "terminal": put(transitions.terminals),
+    }
+    return training.TensorData(tensors, config.heldout_fraction, config.heldout_eval_rows, seed)
+
+
+def train_generators(
+    transitions: Transitions,
+    source_sha256: str,
+    config: GeneratorConfig,
+    *,
+    cache_root: Path,
+    seed: int,
+    device: str | torch.device | None = None,
+    show_progress: bool = True,
+) -> Generators:
+    """Train the five models, or load the finished ones from
+    `cache_root/<source_sha256[:16]>-<config.hash()[:12]>-seed<seed>/`; an interrupted model
+    resumes from its last checkpoint there."""
+    device = device if isinstance(device, torch.device) else select_device(device)
+    cache_dir = cache_dir_for(cache_root, source_sha256, config, seed)
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    if not (cache_dir / "config.json").exists():
+        training.write_json_atomic(
+            {"source_sha256": source_sha256, "seed": seed, "config": config.to_dict()},
+            cache_dir / "config.json",
+        )
+    normalizer = StateNormalizer.fit(transitions.observations, eps=config.normalizer_eps)
+    if not (cache_dir / "normalizer.json").exists():
+        training.write_json_atomic(normalizer.to_dict(), cache_dir / "normalizer.json")
+
+    models = build_models(transitions.obs_dim, transitions.act_dim, config, seed)
+    set_data_scales(models, transitions, config)
+    for model in models.values():
+        model.to(device)
+    settings, losses = fit_settings(config), model_losses(models)
+    report: dict[str, dict] = {}
+    data: training.TensorData | None = None
+    with progress_display(disable=not show_progress) as prog:
+        for name in MODEL_NAMES:
+            weights_path, record_path = cache_dir / f"{name}.pt", cache_dir / f"{name}.json"
+            if weights_path.exists() and record_path.exists():
+                _load_weights(models[name], weights_path)
+                record = json.loads(record_path.read_text())
+                report[name] = {**record, "cached": True}
+                continue
+            if data is None:
+                data = transition_tensors(transitions, normalizer, config, seed, device)
+            train_loss, heldout_loss = losses[name]
+            after_step = models["value"].update_target if name == "value" else None
+            record = training.fit(
+                name,
+                models[name],
+                train_loss,
+                heldout_loss,
+                data,
+                seed=seed,
+                eval_every=config.eval_every,
+                checkpoint_every=config.checkpoint_every,
+                checkpoint_path=cache_dir / f"{name}.ckpt.pt",
+                after_step=after_step,
+                progress=prog,
+                **settings[name],
+            )
+            training.save_atomic(models[name].state_dict(), weights_path)
+            training.write_json_atomic(record.to_dict(), record_path)
+            (cache_dir / f"{name}.ckpt.pt").unlink(missing_ok=True)
+            report[name] = record.to_dict()
+    for model in models.values():
+        model.eval().requires_grad_(False)
+    hashes = {name: training.file_sha256(cache_dir / f"{name}.pt") for name in MODEL_NAMES}
+    return Generators(
+        normalizer=normalizer,
+        config=config,
+        device=device,
+        cache_dir=cache_dir,
+        checkpoint_hashes=hashes,
+        training_report=report,
+        **models,
+    )
+
+
+def _load_weights(model: nn.Module, path: Path) -> None:
+    state = training.load_tensors(path, "a generator weights file")
+    try:
+        model.load_state_dict(state)
+    except (RuntimeError, TypeError, AttributeError) as error:
+        raise DataFormatError(
+            path,
+            "(weights)",
+            f"weights matching {type(model).__name__}; delete the file to retrain",
+            str(error).splitlines()[0],
+        ) from None

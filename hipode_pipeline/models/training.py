@@ -1,0 +1,297 @@
+"""The training loop all five generators share: minibatches gathered by vectorized indices from
+tensors preallocated on the device, a held-out split, best-weights keeping (whole model or per
+ensemble member), rich progress, and resumable checkpoints written atomically."""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import hashlib
+import io
+import json
+import os
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from rich.progress import Progress, TaskID
+from torch import Tensor, nn
+
+from hipode_pipeline.console import rate_text
+from hipode_pipeline.errors import DataFormatError
+
+KEEP_BEST_MODES = ("none", "model", "member")
+PRECISIONS = ("fp32", "bf16")
+
+Batch = dict[str, Tensor]
+# (batch, generator) -> (loss to minimize, loss to report)
+LossFn = Callable[[Batch, torch.Generator], tuple[Tensor, Tensor]]
+# held-out batch -> loss, a scalar or one value per ensemble member
+HeldoutFn = Callable[[Batch], Tensor]
+
+
+@dataclass(frozen=True)
+class TrainingRecord:
+    """What one model's training did; saved as JSON beside its weights."""
+
+    steps: int  # gradient steps taken in total (across resumes)
+    seconds: float  # wall time spent training, summed across resumes
+    initial_heldout_loss: float  # before the first step (mean over members)
+    best_heldout_loss: float  # lowest seen at an evaluation (mean of per-member bests)
+    final_heldout_loss: float  # after the last step, before best weights are restored
+    cached: bool = False  # True when loaded from a finished weights file instead of trained
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def derive_seed(seed: int, name: str) -> int:
+    """A stable per-purpose seed, so each model's randomness is independent of the others'."""
+    digest = hashlib.sha256(f"{seed}:{name}".encode()).digest()
+    return int.from_bytes(digest[:8], "little") % (2**63)
+
+
+@contextlib.contextmanager
+def seeded_init(seed: int) -> Iterator[None]:
+    """Build modules under a fixed global torch seed without disturbing the caller's RNG."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        yield
+
+
+def autocast(device: torch.device, precision: str):
+    """bf16 autocast for matmuls when asked; losses are still reduced in fp32."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision '{precision}': expected one of {PRECISIONS}")
+    return torch.autocast(
+        device_type=device.type, dtype=torch.bfloat16, enabled=precision == "bf16"
+    )
+
+
+def _readable_temp(path: Path) -> tuple[int, str]:
+    """A temp file beside `path` with the permissions a plain open() would give (mkstemp: 0600)."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)
+    return fd, tmp
+
+
+def save_atomic(obj: Any, path: Path) -> None:
+    """torch.save into memory, then a temp file in the same folder renamed over `path`.
+
+    Serializing to a buffer keeps the bytes independent of the file name (torch.save names the
+    archive's root folder after the file), so equal weights give equal sha256 checksums.
+    """
+    buffer = io.BytesIO()
+    torch.save(obj, buffer)
+    fd, tmp = _readable_temp(path)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(buffer.getbuffer())
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def write_json_atomic(data: Any, path: Path) -> None:
+    fd, tmp = _readable_temp(path)
+    with os.fdopen(fd, "w") as f:
+        json.dump(data, f, indent=2, sort_keys=True)
+    os.replace(tmp, path)
+
+
+def load_tensors(path: Path, what: str) -> Any:
+    """torch.load with weights_only=True; an unreadable file is the user's to delete."""
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # torch raises several types for truncated or foreign files
+        raise DataFormatError(
+            path,
+            "(file)",
+            f"{what} readable by torch.load(weights_only=True); delete it to retrain",
+            type(error).__name__,
+        ) from None
+
+
+def file_sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+class TensorData:
+    """Transition tensors preallocated on one device, split once into train and held-out rows."""
+
+    def __init__(self, tensors: Batch, heldout_fraction: float, heldout_eval_rows: int, seed: int):
+        self.tensors = tensors
+        n = next(iter(tensors.values())).shape[0]
+        device = next(iter(tensors.values())).device
+        order = torch.randperm(
+            n, generator=torch.Generator().manual_seed(derive_seed(seed, "split"))
+        )
+        n_heldout = min(max(1, round(n * heldout_fraction)), n - 1)
+        self.heldout_rows = order[:n_heldout].to(device)
+        self.train_rows = order[n_heldout:].to(device)
+        self._heldout = {k: t[self.heldout_rows[:heldout_eval_rows]] for k, t in tensors.items()}
+
+    def sample(self, batch_size: int, generator: torch.Generator) -> Batch:
+        picks = torch.randint(
+            len(self.train_rows), (batch_size,), generator=generator, device=generator.device
+        )
+        rows = self.train_rows[picks.to(self.train_rows.device)]
+        return {k: t[rows] for k, t in self.tensors.items()}
+
+    def heldout(self) -> Batch:
+        return self._heldout
+
+
+def checkpoint_written(name: str, step: int) -> None:
+    """Called after each resumable checkpoint; tests replace it to simulate an interruption."""
+
+
+@dataclass
+class _BestWeights:
+    """Best-so-far weights: the whole model, or per ensemble member along dim 0."""
+
+    mode: str
+    loss: Tensor  # (E,) or (1,)
+    state: dict[str, Tensor] | None
+
+    def update(self, model: nn.Module, loss: Tensor) -> None:
+        improved = loss < self.loss
+        if self.mode != "none" and bool(improved.any()):
+            current = model.state_dict()
+            if self.mode == "model":
+                self.state = copy.deepcopy(current)
+            else:
+                for key, value in current.items():
+                    # tensors without a member axis (scales, bounds) do not change in training
+                    if value.dim() >= 1 and value.shape[0] == loss.shape[0]:
+                        rows = improved.to(value.device)
+                        self.state[key][rows] = value[rows]
+        self.loss = torch.minimum(self.loss, loss)
+
+
+def fit(
+    name: str,
+    model: nn.Module,
+    loss_fn: LossFn,
+    heldout_fn: HeldoutFn,
+    data: TensorData,
+    *,
+    steps: int,
+    batch_size: int,
+    lr: float,
+    weight_decay: float,
+    seed: int,
+    precision: str,
+    eval_every: int,
+    checkpoint_every: int,
+    checkpoint_path: Path,
+    keep_best: str,
+    after_step: Callable[[int], None] | None = None,
+    progress: Progress | None = None,
+) -> TrainingRecord:
+    """Train `model` for `steps` Adam steps on minibatches of `data`, resuming from
+    `checkpoint_path` when it exists; returns the record and leaves the kept weights loaded."""
+    if keep_best not in KEEP_BEST_MODES:
+        raise ValueError(f"keep_best '{keep_best}': expected one of {KEEP_BEST_MODES}")
+    device = next(model.parameters()).device
+    params = [p for p in model.parameters() if p.requires_grad]
+    optimizer = torch.optim.Adam(params, lr=lr, weight_decay=weight_decay, fused=True)
+    generator = torch.Generator(device=device).manual_seed(derive_seed(seed, name))
+
+    def heldout_loss() -> Tensor:
+        model.eval()
+        with torch.no_grad():
+            loss = heldout_fn(data.heldout()).float().reshape(-1).cpu()
+        model.train()
+        return loss
+
+    model.train()
+    if checkpoint_path.exists():
+        state = load_tensors(checkpoint_path, "a training checkpoint")
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        generator.set_state(state["rng"])
+        step, seconds = int(state["step"]), float(state["seconds"])
+        initial, last = state["initial_loss"], state["last_loss"]
+        best = _BestWeights(keep_best, state["best_loss"], state["best_state"])
+    else:
+        step, seconds = 0, 0.0
+        initial = last = heldout_loss()
+        kept = copy.deepcopy(model.state_dict()) if keep_best != "none" else None
+        best = _BestWeights(keep_best, initial.clone(), kept)
+
+    def save_checkpoint() -> None:
+        save_atomic(
+            {
+                "model": model.state_dict(),
+                "optimizer": optimizer.state_dict(),
+                "rng": generator.get_state(),
+                "step": step,
+                "seconds": seconds + time.perf_counter() - started,
+                "initial_loss": initial,
+                "last_loss": last,
+                "best_loss": best.loss,
+                "best_state": best.state,
+            },
+            checkpoint_path,
+        )
+        checkpoint_written(name, step)
+
+    task: TaskID | None = None
+    if progress is not None:
+        task = progress.add_task(
+            name, total=steps, completed=step, rate="", info=_info(initial, last, best)
+        )
+    started, start_step = time.perf_counter(), step
+    refresh_every = max(1, min(50, eval_every))
+    while step < steps:
+        batch = data.sample(batch_size, generator)
+        with autocast(device, precision):
+            loss, _ = loss_fn(batch, generator)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        step += 1
+        if after_step is not None:
+            after_step(step)
+        if step % eval_every == 0 or step == steps:
+            last = heldout_loss()
+            best.update(model, last)
+        if step % checkpoint_every == 0 and step < steps:
+            save_checkpoint()
+        if task is not None and (step % refresh_every == 0 or step == steps):
+            elapsed = time.perf_counter() - started
+            progress.update(
+                task,
+                completed=step,
+                rate=rate_text(step - start_step, elapsed),
+                info=_info(initial, last, best),
+            )
+    seconds += time.perf_counter() - started
+    if best.state is not None:
+        model.load_state_dict(best.state)
+    return TrainingRecord(
+        steps=step,
+        seconds=round(seconds, 3),
+        initial_heldout_loss=float(initial.mean()),
+        best_heldout_loss=float(best.loss.mean()),
+        final_heldout_loss=float(last.mean()),
+    )
+
+
+def _info(initial: Tensor, last: Tensor, best: _BestWeights) -> str:
+    text = f"held-out {float(last.mean()):.4g} (start {float(initial.mean()):.4g}"
+    if best.mode != "none":
+        text += f", best {float(best.loss.mean()):.4g}"
+    return text + ")"
