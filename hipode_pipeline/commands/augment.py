@@ -1,9 +1,134 @@
-"""`hipode augment`."""
+"""`hipode augment`: stage one, source dataset -> five generators -> synthetic artifact."""
 
 from __future__ import annotations
 
+from enum import StrEnum
+from pathlib import Path
+from typing import Annotated
+
 import typer
+
+from hipode_pipeline import console
+from hipode_pipeline.augment import run_augment
+from hipode_pipeline.commands.common import ForceFlag, JsonFlag, RootOption, SeedOption, user_errors
+
+
+class Profile(StrEnum):
+    full = "full"
+    quick = "quick"
+
+
+class Penalty(StrEnum):
+    target = "target"
+    l2 = "l2"
+    contrastive = "contrastive"
+
+
+class Selection(StrEnum):
+    batch = "batch"
+    global_ = "global"
+
+
+class Candidates(StrEnum):
+    model = "model"
+    uniform = "uniform"
+
+
+@user_errors
+def augment_command(
+    task: Annotated[
+        str, typer.Argument(help="Task, e.g. hopper-m-r (its Table 6 values are the defaults).")
+    ],
+    source: Annotated[
+        str | None,
+        typer.Option(
+            help="Source: Minari id or D4RL .hdf5 file (default: the task's collected dataset)."
+        ),
+    ] = None,
+    eta: Annotated[
+        float | None, typer.Option(min=0.0, help="Synthetic rate: keep round(eta*N) [Table 6].")
+    ] = None,
+    lam: Annotated[
+        float | None,
+        typer.Option(
+            min=0.0,
+            max=1.0,
+            help="Selecting rate: fraction kept by dynamics consistency [Table 6].",
+        ),
+    ] = None,
+    n: Annotated[
+        int | None,
+        typer.Option("--n", min=1, help="Candidate next states per source state [Table 6]."),
+    ] = None,
+    alpha: Annotated[
+        float | None, typer.Option(help="Negative-sampling penalty weight [Table 6].")
+    ] = None,
+    sigma: Annotated[
+        float | None,
+        typer.Option(min=0.0, help="Negative-sampling scope, z-scored units [Table 6]."),
+    ] = None,
+    penalty: Annotated[Penalty | None, typer.Option(help="Negative-sampling penalty form.")] = None,
+    selection: Annotated[
+        Selection, typer.Option(help="Top-lambda per generation batch or over all.")
+    ] = Selection.batch,
+    candidates: Annotated[
+        Candidates,
+        typer.Option(
+            help="Candidate next states: the state-transition model, or uniform (ablation)."
+        ),
+    ] = Candidates.model,
+    dynamics_mean: Annotated[
+        bool,
+        typer.Option(
+            "--dynamics-mean", help="Check against the ensemble mean, not a member's sample."
+        ),
+    ] = False,
+    profile: Annotated[
+        Profile, typer.Option(help="Generator budgets: full (the real run) or quick.")
+    ] = Profile.full,
+    seed: SeedOption = 0,
+    out: Annotated[
+        Path | None,
+        typer.Option(
+            help="Artifact path (default: <root>/artifacts/<task>-td3bc-seed<seed>.hdf5)."
+        ),
+    ] = None,
+    root: RootOption = None,
+    device: Annotated[
+        str | None, typer.Option(help="cpu, cuda or auto (default: CUDA when present).")
+    ] = None,
+    force: ForceFlag = False,
+    json_output: JsonFlag = False,
+) -> None:
+    """Train HIPODE's five generators on the source and write the synthetic dataset file."""
+    summary = run_augment(
+        task,
+        source=source,
+        eta=eta,
+        lam=lam,
+        n=n,
+        alpha=alpha,
+        sigma=sigma,
+        penalty=penalty.value if penalty else None,
+        selection=selection.value,
+        candidates=candidates.value,
+        dynamics_mean=dynamics_mean,
+        profile=profile.value,
+        seed=seed,
+        out=out,
+        root=root,
+        force=force,
+        device=device,
+        show_progress=True,
+    )
+    if json_output:
+        console.print_json(summary.to_dict())
+        return
+    console.out.print(
+        console.table(f"Stage one: {summary.task}", ["quantity", "value"], summary.rows())
+    )
 
 
 def register(app: typer.Typer) -> None:
     """Add this group's commands to the root app."""
+    app.command("augment")(augment_command)
