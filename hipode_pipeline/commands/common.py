@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich.markup import escape
 
 from hipode_pipeline import console
 from hipode_pipeline.errors import HipodeError
@@ -20,7 +21,7 @@ def user_errors(fn):
         try:
             return fn(*args, **kwargs)
         except HipodeError as error:
-            console.err.print(f"[bold red]error:[/] {error}", highlight=False, markup=True)
+            console.err.print(f"[bold red]error:[/] {escape(str(error))}", highlight=False)
             raise typer.Exit(code=error.exit_code) from None
 
     return wrapper

@@ -1,9 +1,111 @@
-"""`hipode train`."""
+"""`hipode train`: a learner on source ⊕ synthetic, evaluated, with a score table at the end."""
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Annotated
+
 import typer
+
+from hipode_pipeline import console
+from hipode_pipeline.commands.common import ForceFlag, JsonFlag, RootOption, SeedOption, user_errors
+
+
+@user_errors
+def train_command(
+    task: Annotated[str, typer.Argument(help="Task name, e.g. hopper-m-r.")],
+    learner: Annotated[
+        str,
+        typer.Option(
+            "--learner", help="td3bc | iql | cql | d3rlpy:<AlgoName> (needs the d3rlpy extra)."
+        ),
+    ] = "td3bc",
+    data: Annotated[
+        str,
+        typer.Option(
+            "--data", help="merged (source + the task's synthetic artifact) or source (baseline)."
+        ),
+    ] = "merged",
+    steps: Annotated[
+        int | None,
+        typer.Option(
+            "--steps", help="Updates (default: stages/train.toml; shorter without a GPU)."
+        ),
+    ] = None,
+    seed: SeedOption = 0,
+    eta: Annotated[
+        float | None,
+        typer.Option(
+            "--eta", help="Synthetic fraction per batch (default: the task's table value)."
+        ),
+    ] = None,
+    mixing: Annotated[
+        str,
+        typer.Option("--mixing", help="mixed (eta per batch) or union (uniform over all rows)."),
+    ] = "mixed",
+    eval_every: Annotated[
+        int | None, typer.Option("--eval-every", help="Updates between evaluations.")
+    ] = None,
+    eval_episodes: Annotated[
+        int | None, typer.Option("--eval-episodes", help="Episodes per evaluation.")
+    ] = None,
+    batch_size: Annotated[
+        int | None, typer.Option("--batch-size", help="Transitions per update.")
+    ] = None,
+    artifact: Annotated[
+        Path | None,
+        typer.Option(
+            "--artifact", help="Synthetic artifact (default: what `hipode augment TASK` wrote)."
+        ),
+    ] = None,
+    source: Annotated[
+        str | None,
+        typer.Option(
+            "--source", help="Source dataset: Minari id or D4RL .hdf5 (default: the task's)."
+        ),
+    ] = None,
+    out: Annotated[
+        Path,
+        typer.Option(
+            "--out", help="Runs folder; the run goes to OUT/<task>/<learner>-<data>-seed<seed>/."
+        ),
+    ] = Path("runs"),
+    device: Annotated[
+        str | None, typer.Option("--device", help="cpu | cuda (default: CUDA when present).")
+    ] = None,
+    root: RootOption = None,
+    force: ForceFlag = False,
+    json_output: JsonFlag = False,
+) -> None:
+    """Train an offline learner on the task's data, evaluate it, print its scores (resumes)."""
+    from hipode_pipeline.train import SCORE_COLUMNS, SCORE_TITLE, run_training, score_table_rows
+
+    result = run_training(
+        task,
+        learner,
+        data,
+        steps,
+        seed,
+        eval_every,
+        eval_episodes,
+        out,
+        source=source,
+        artifact=artifact,
+        eta=eta,
+        mixing=mixing,
+        batch_size=batch_size,
+        device=device,
+        root=root,
+        force=force,
+        show_progress=not json_output,
+    )
+    if json_output:
+        console.print_json(result.to_dict())
+        return
+    console.err.print(f"run folder: {result.run_dir}")
+    console.out.print(console.table(SCORE_TITLE, SCORE_COLUMNS, score_table_rows(result)))
 
 
 def register(app: typer.Typer) -> None:
     """Add this group's commands to the root app."""
+    app.command("train")(train_command)

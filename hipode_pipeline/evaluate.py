@@ -1,0 +1,116 @@
+"""Policy evaluation: deterministic rollouts in the task's gymnasium env with fixed seeds,
+several episodes stepped together so the policy runs as one batch, raw returns and
+D4RL-normalized scores (reference returns from the data's own metadata)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+
+import gymnasium as gym
+import numpy as np
+
+from hipode_pipeline.errors import HipodeError
+
+Policy = Callable[[np.ndarray], np.ndarray]
+
+
+@dataclass(frozen=True)
+class EvalResult:
+    """Returns and normalized scores of n evaluation episodes."""
+
+    returns: list[float]  # raw episode returns, in seed order
+    lengths: list[int]  # episode lengths
+    seeds: list[int]  # reset seed of each episode
+    return_mean: float
+    return_std: float
+    score_mean: float | None  # D4RL-normalized, None without reference returns
+    score_std: float | None
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def summary(self) -> dict[str, float | None]:
+        """Means and stds only: what metrics lines and score files keep."""
+        return {
+            "return_mean": self.return_mean,
+            "return_std": self.return_std,
+            "score_mean": self.score_mean,
+            "score_std": self.score_std,
+        }
+
+
+def normalized_score(episode_return: float | np.ndarray, ref_min: float, ref_max: float):
+    """D4RL's 100 · (R − R_random) / (R_expert − R_random)."""
+    return 100.0 * (episode_return - ref_min) / (ref_max - ref_min)
+
+
+def evaluation_seeds(seed: int, episodes: int) -> list[int]:
+    """Fixed, run-independent reset seeds: the same policy always meets the same starts."""
+    return [seed * 1000 + i for i in range(episodes)]
+
+
+def make_env(env_id: str) -> gym.Env:
+    """A registered gymnasium env; ids naming a module to import are refused (ids are data)."""
+    if ":" in env_id:
+        raise HipodeError(
+            f"env id '{env_id}': expected a registered gymnasium id such as Hopper-v5, "
+            "not a module path"
+        )
+    try:
+        return gym.make(env_id)
+    except gym.error.Error as error:
+        raise HipodeError(
+            f"env id '{env_id}': expected a gymnasium env installed here ({error})"
+        ) from None
+
+
+def evaluate_policy(
+    policy: Policy,
+    env_id: str,
+    *,
+    episodes: int = 10,
+    seed: int = 0,
+    ref_min_score: float | None = None,
+    ref_max_score: float | None = None,
+    max_episode_steps: int | None = None,
+) -> EvalResult:
+    """Run `episodes` deterministic episodes side by side; `policy` maps (k, ds) -> (k, da)."""
+    seeds = evaluation_seeds(seed, episodes)
+    envs = [make_env(env_id) for _ in range(episodes)]
+    try:
+        observations = np.stack(
+            [env.reset(seed=s)[0] for env, s in zip(envs, seeds, strict=True)]
+        ).astype(np.float32)
+        returns = np.zeros(episodes)
+        lengths = np.zeros(episodes, dtype=np.int64)
+        active = np.ones(episodes, dtype=bool)
+        while active.any():
+            running = np.flatnonzero(active)
+            actions = np.asarray(policy(observations[running]))
+            for action, i in zip(actions, running, strict=True):
+                obs, reward, terminated, truncated, _ = envs[i].step(action)
+                observations[i] = obs
+                returns[i] += float(reward)
+                lengths[i] += 1
+                if (
+                    terminated
+                    or truncated
+                    or (max_episode_steps is not None and lengths[i] >= max_episode_steps)
+                ):
+                    active[i] = False
+    finally:
+        for env in envs:
+            env.close()
+    scores = None
+    if ref_min_score is not None and ref_max_score is not None:
+        scores = normalized_score(returns, ref_min_score, ref_max_score)
+    return EvalResult(
+        returns=returns.tolist(),
+        lengths=lengths.tolist(),
+        seeds=seeds,
+        return_mean=float(returns.mean()),
+        return_std=float(returns.std()),
+        score_mean=None if scores is None else float(scores.mean()),
+        score_std=None if scores is None else float(scores.std()),
+    )

@@ -1,0 +1,214 @@
+"""CQL: "Conservative Q-Learning for Offline Reinforcement Learning", Kumar et al., NeurIPS 2020.
+
+SAC with a conservative term: logsumexp of Q over sampled actions (uniform, policy at s, policy
+at s', importance-weighted) minus Q on the data, weighted by cql_alpha (10, as in the paper's
+runs). Settings follow CORL's CQL (3-layer critics with orthogonal init, automatic entropy,
+10 sampled actions). All sampled actions of a batch go through the twin critics as one
+batched pass, which is what keeps CQL usable on a CPU.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from hipode_pipeline.learners.base import (
+    Batch,
+    Learner,
+    LearnerConfig,
+    TwinCritic,
+    adam,
+    orthogonal_init_,
+    polyak_,
+)
+
+LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
+
+
+@dataclass
+class CQLConfig(LearnerConfig):
+    """CQL's settings (CORL defaults; cql_alpha from the paper's runs)."""
+
+    cql_alpha: float = 10.0  # weight of the conservative term
+    cql_n_actions: int = 10  # actions sampled per state for each of the three proposals
+    cql_temp: float = 1.0  # temperature of the logsumexp
+    policy_lr: float = 3e-5  # actor (and entropy temperature) learning rate
+    critic_lr: float = 3e-4  # critic learning rate
+    critic_hidden_layers: int = 3  # hidden layers of each Q-network
+    actor_hidden_layers: int = 3  # hidden layers of the policy
+    target_entropy: float | None = None  # None: -act_dim
+    auto_entropy: bool = True  # learn the SAC temperature
+    backup_entropy: bool = False  # subtract alpha * log pi in the TD target
+    orthogonal_init: bool = True  # orthogonal init of the critics (CORL)
+
+
+class TanhGaussianActor(nn.Module):
+    """MLP -> (mean, log_std) -> tanh-squashed Gaussian; log-probs with the tanh correction."""
+
+    def __init__(
+        self, obs_dim: int, act_dim: int, hidden_dim: int, hidden_layers: int, max_action: float
+    ):
+        super().__init__()
+        layers: list[nn.Module] = []
+        width = obs_dim
+        for _ in range(hidden_layers):
+            layers += [nn.Linear(width, hidden_dim), nn.ReLU()]
+            width = hidden_dim
+        last = nn.Linear(width, 2 * act_dim)
+        # a near-zero last layer starts the policy centred, as CORL does
+        nn.init.xavier_uniform_(last.weight, gain=1e-2)
+        nn.init.zeros_(last.bias)
+        self.net = nn.Sequential(*layers, last)
+        # learnable affine map of the raw log-std, starting at std e^-1 (as CORL's policy does)
+        self.log_std_scale = nn.Parameter(torch.ones(()))
+        self.log_std_offset = nn.Parameter(torch.full((), -1.0))
+        self.max_action = max_action
+
+    def forward(
+        self,
+        obs: torch.Tensor,
+        generator: torch.Generator | None = None,
+        deterministic: bool = False,
+    ):
+        mean, log_std = self.net(obs).chunk(2, dim=-1)
+        log_std = (self.log_std_scale * log_std + self.log_std_offset).clamp(
+            LOG_STD_MIN, LOG_STD_MAX
+        )
+        if deterministic:
+            return self.max_action * torch.tanh(mean), None
+        std = log_std.exp()
+        eps = torch.randn(mean.shape, generator=generator, device=mean.device)
+        pre_tanh = mean + std * eps
+        log_prob = (-0.5 * eps.square() - log_std - 0.5 * math.log(2 * math.pi)).sum(-1)
+        # log|d tanh(u)/du| = 2 (log 2 - u - softplus(-2u)), the numerically stable form
+        log_prob = log_prob - (
+            2 * (math.log(2) - pre_tanh - nn.functional.softplus(-2 * pre_tanh))
+        ).sum(-1)
+        return self.max_action * torch.tanh(pre_tanh), log_prob
+
+
+class CQL(Learner):
+    """CQL(H) with twin critics, a tanh-Gaussian actor and automatic entropy tuning."""
+
+    name = "cql"
+    config_class = CQLConfig
+
+    def __init__(
+        self,
+        obs_dim: int,
+        act_dim: int,
+        config: CQLConfig | None = None,
+        *,
+        device=None,
+        seed: int = 0,
+    ):
+        super().__init__(obs_dim, act_dim, config, device=device, seed=seed)
+        c = self.config
+        self.actor = TanhGaussianActor(
+            obs_dim, act_dim, c.hidden_dim, c.actor_hidden_layers, c.max_action
+        ).to(self.device)
+        self.critic = TwinCritic(obs_dim, act_dim, c.hidden_dim, n_hidden=c.critic_hidden_layers)
+        if c.orthogonal_init:
+            for i, (w, b) in enumerate(zip(self.critic.weights, self.critic.biases, strict=True)):
+                orthogonal_init_(
+                    w.data, gain=1e-2 if i == len(self.critic.weights) - 1 else math.sqrt(2)
+                )
+                nn.init.zeros_(b.data)
+        self.critic = self.critic.to(self.device)
+        self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
+        self.log_alpha = nn.Parameter(torch.zeros((), device=self.device))
+        self.entropy = nn.ParameterDict({"log_alpha": self.log_alpha})
+        self.target_entropy = -float(act_dim) if c.target_entropy is None else c.target_entropy
+        self.modules = {
+            "actor": self.actor,
+            "critic": self.critic,
+            "critic_target": self.critic_target,
+            "entropy": self.entropy,
+        }
+        self.optimizers = {
+            "actor": adam(self.actor.parameters(), c.policy_lr, self.device),
+            "critic": adam(self.critic.parameters(), c.critic_lr, self.device),
+            "entropy": adam([self.log_alpha], c.policy_lr, self.device),
+        }
+
+    def _policy_actions(self, observations: torch.Tensor) -> torch.Tensor:
+        return self.actor(observations, deterministic=True)[0]
+
+    def update(self, batch: Batch) -> dict[str, float]:
+        c, g = self.config, self.generator
+        obs, next_obs, actions = (
+            self.normalize(batch.observations),
+            self.normalize(batch.next_observations),
+            batch.actions,
+        )
+        B, da, n = actions.shape[0], self.act_dim, c.cql_n_actions
+        self.step += 1
+
+        # actor and temperature (SAC), against the current critics
+        new_actions, log_pi = self.actor(obs, g)
+        if c.auto_entropy:
+            alpha_loss = -(self.log_alpha * (log_pi.detach() + self.target_entropy)).mean()
+            alpha = self.log_alpha.detach().exp()
+        else:
+            alpha_loss, alpha = (
+                torch.zeros((), device=self.device),
+                torch.ones((), device=self.device),
+            )
+        q_new = self.critic(obs, new_actions).amin(0)
+        actor_loss = (alpha * log_pi - q_new).mean()
+
+        # TD target
+        with torch.no_grad():
+            next_actions, next_log_pi = self.actor(next_obs, g)
+            target_q = self.critic_target(next_obs, next_actions).amin(0)
+            if c.backup_entropy:
+                target_q = target_q - alpha * next_log_pi
+            target = batch.rewards + (1.0 - batch.dones) * c.discount * target_q
+
+        # conservative term: uniform, pi(.|s) and pi(.|s') proposals, all scored at s in one pass
+        with torch.no_grad():
+            random_actions = torch.empty((B, n, da), device=self.device).uniform_(
+                -c.max_action, c.max_action, generator=g
+            )
+            both = torch.cat([obs, next_obs]).unsqueeze(1).expand(-1, n, -1)
+            sampled, sampled_log_pi = self.actor(both, g)
+            current_actions, next_proposals = sampled.split(B)
+            current_log_pi, next_log_pi_s = sampled_log_pi.split(B)
+        proposals = torch.cat(
+            [actions.unsqueeze(1), random_actions, next_proposals, current_actions], dim=1
+        )
+        q_all = self.critic(obs.unsqueeze(1).expand(-1, 1 + 3 * n, -1), proposals)  # (2, B, 1 + 3n)
+        q_data = q_all[:, :, 0]
+        random_density = da * math.log(0.5 / c.max_action)
+        log_density = torch.cat(
+            [torch.full((B, n), random_density, device=self.device), next_log_pi_s, current_log_pi],
+            dim=1,
+        )
+        ood = torch.logsumexp((q_all[:, :, 1:] - log_density) / c.cql_temp, dim=-1) * c.cql_temp
+        cql_gap = (ood - q_data).mean(1)  # per critic
+        td_loss = (q_data - target).square().mean(1)
+        critic_loss = (td_loss + c.cql_alpha * cql_gap).sum()
+
+        if c.auto_entropy:
+            self.optimizers["entropy"].zero_grad(set_to_none=True)
+            alpha_loss.backward()
+            self.optimizers["entropy"].step()
+        self.optimizers["actor"].zero_grad(set_to_none=True)
+        actor_loss.backward(inputs=list(self.actor.parameters()))
+        self.optimizers["actor"].step()
+        self.optimizers["critic"].zero_grad(set_to_none=True)
+        critic_loss.backward()
+        self.optimizers["critic"].step()
+        polyak_(self.critic_target, self.critic, c.tau)
+        return {
+            "critic_loss": critic_loss.item(),
+            "td_loss": td_loss.sum().item(),
+            "cql_gap": cql_gap.mean().item(),
+            "actor_loss": actor_loss.item(),
+            "alpha": alpha.item(),
+            "q_mean": q_data.mean().item(),
+        }

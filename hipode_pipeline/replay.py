@@ -1,0 +1,114 @@
+"""Real and synthetic transitions in one preallocated tensor on the device, sampled as η-mixed
+batches (METHOD.md, appendix B.4: round(η·B) synthetic and B − round(η·B) real rows per batch)
+or uniformly over the union. One index draw and one gather per batch."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+import torch
+
+from hipode_pipeline.data.transitions import Transitions
+from hipode_pipeline.errors import HipodeError
+from hipode_pipeline.learners.base import Batch
+
+Mixing = Literal["mixed", "union"]
+MIXING_MODES = ("mixed", "union")
+
+
+def _pack(t: Transitions) -> np.ndarray:
+    """(N, 2·ds + da + 2) float32 rows: s, a, r, s', done (terminal only: timeouts bootstrap)."""
+    return np.concatenate(
+        [
+            t.observations,
+            t.actions,
+            t.rewards[:, None],
+            t.next_observations,
+            t.terminals[:, None].astype(np.float32),
+        ],
+        axis=1,
+        dtype=np.float32,
+    )
+
+
+class MixedReplay:
+    """Sampler over real (source) and synthetic transitions.
+
+    Rows 0..n_real-1 of the packed tensor are real, the rest synthetic. With mixing "mixed"
+    each batch holds exactly round(eta·B) synthetic rows (the first ones of the batch are real);
+    with "union" rows are drawn uniformly over both. eta = 0 (or no synthetic data) never
+    copies or reads a synthetic row.
+    """
+
+    def __init__(
+        self,
+        real: Transitions,
+        synthetic: Transitions | None = None,
+        *,
+        eta: float = 0.0,
+        mixing: Mixing = "mixed",
+        device: torch.device | str = "cpu",
+        seed: int = 0,
+    ):
+        if mixing not in MIXING_MODES:
+            raise HipodeError(f"mixing: expected one of {MIXING_MODES}, found {mixing!r}")
+        if not 0.0 <= eta <= 1.0:
+            raise HipodeError(f"eta (synthetic rate): expected a number in [0, 1], found {eta}")
+        use_synthetic = (
+            synthetic is not None and len(synthetic) > 0 and (mixing == "union" or eta > 0)
+        )
+        if mixing == "mixed" and eta > 0 and not use_synthetic:
+            raise HipodeError(
+                f"eta = {eta} asks for synthetic rows but no synthetic transitions were given"
+            )
+        if use_synthetic and (synthetic.obs_dim, synthetic.act_dim) != (real.obs_dim, real.act_dim):
+            raise HipodeError(
+                "synthetic transitions: expected obs/act dims "
+                f"{(real.obs_dim, real.act_dim)} like the source, "
+                f"found {(synthetic.obs_dim, synthetic.act_dim)}"
+            )
+        self.eta, self.mixing = float(eta), mixing
+        self.obs_dim, self.act_dim = real.obs_dim, real.act_dim
+        self.n_real = len(real)
+        self.n_synthetic = len(synthetic) if use_synthetic else 0
+        self.device = torch.device(device)
+        parts = [_pack(real)] + ([_pack(synthetic)] if use_synthetic else [])
+        self.data = torch.from_numpy(np.concatenate(parts) if len(parts) > 1 else parts[0]).to(
+            self.device
+        )
+        ds, da = self.obs_dim, self.act_dim
+        # column boundaries of s | a | r | s' | done in a packed row
+        self._splits = [ds, da, 1, ds, 1]
+        self.generator = torch.Generator(device=self.device)
+        self.generator.manual_seed(seed)
+
+    def __len__(self) -> int:
+        return self.n_real + self.n_synthetic
+
+    def synthetic_count(self, batch_size: int) -> int:
+        """Synthetic rows in every batch of this size under "mixed" (random under "union")."""
+        return round(self.eta * batch_size) if self.mixing == "mixed" and self.n_synthetic else 0
+
+    def sample_indices(self, batch_size: int) -> torch.Tensor:
+        """Row indices into the packed tensor; real rows first, then synthetic ones."""
+        g, dev = self.generator, self.device
+        if self.mixing == "union":
+            return torch.randint(len(self), (batch_size,), generator=g, device=dev)
+        n_syn = self.synthetic_count(batch_size)
+        if n_syn == 0:
+            return torch.randint(self.n_real, (batch_size,), generator=g, device=dev)
+        real = torch.randint(self.n_real, (batch_size - n_syn,), generator=g, device=dev)
+        syn = torch.randint(self.n_synthetic, (n_syn,), generator=g, device=dev) + self.n_real
+        return torch.cat([real, syn])
+
+    def sample(self, batch_size: int) -> Batch:
+        rows = self.data.index_select(0, self.sample_indices(batch_size))
+        obs, actions, rewards, next_obs, dones = rows.split(self._splits, dim=1)
+        return Batch(obs, actions, rewards.squeeze(1), next_obs, dones.squeeze(1))
+
+    def state_dict(self) -> dict:
+        return {"generator": self.generator.get_state()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.generator.set_state(state["generator"])

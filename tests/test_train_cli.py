@@ -1,0 +1,232 @@
+"""`hipode train` end to end on tiny data: run folder, scores, resume, clear errors, d3rlpy."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from builders import make_episodes, make_minari_dataset
+from test_merge import write_source, write_synthetic
+from typer.testing import CliRunner
+
+import hipode_pipeline.train as train_module
+from hipode_pipeline.artifact import default_artifact_path
+from hipode_pipeline.cli import app
+from hipode_pipeline.data.transitions import Transitions
+from hipode_pipeline.errors import OverwriteError
+from hipode_pipeline.learners.external import episode_arrays
+from hipode_pipeline.train import run_training
+
+TINY = ["--steps", "20", "--eval-every", "10", "--eval-episodes", "2", "--batch-size", "32"]
+
+
+@pytest.fixture
+def tiny_pair(tmp_path):
+    source = write_source(tmp_path / "source.hdf5")
+    write_synthetic(tmp_path / "art.hdf5", source)
+    return str(source), tmp_path / "art.hdf5"
+
+
+def test_train_cli_writes_run_folder_and_scores(tmp_path, tiny_pair):
+    source, artifact = tiny_pair
+    result = CliRunner().invoke(
+        app,
+        [
+            "train",
+            "hopper-m-r",
+            "--source",
+            source,
+            "--artifact",
+            str(artifact),
+            *TINY,
+            "--out",
+            str(tmp_path / "runs"),
+            "--json",
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    scores = json.loads(result.stdout)
+    run_dir = tmp_path / "runs" / "hopper-m-r" / "td3bc-merged-seed0"
+    assert (
+        scores["run_dir"] == str(run_dir) and scores["steps"] == 20 and scores["eta"] == 0.5
+    )  # Table 6
+    assert [e["step"] for e in scores["evaluations"]] == [10, 20]
+    assert scores["last"]["step"] == 20 and "best" in scores["best"]["label"]
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["artifact_checksum"].startswith("sha256:") and len(config["source_sha256"]) == 64
+    assert config["learner_config"]["alpha"] == 2.5 and config["n_synthetic"] == 20
+    lines = [json.loads(x) for x in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    assert (
+        [x["step"] for x in lines] == [10, 20]
+        and "critic_loss" in lines[0]
+        and "eval_score_mean" in lines[1]
+    )
+    assert (run_dir / "checkpoint.pt").is_file() and json.loads(
+        (run_dir / "scores.json").read_text()
+    )["steps"] == 20
+
+
+def test_train_task_with_defaults_uses_collected_data_and_augment_artifact(tmp_path):
+    """What `make train TASK=hopper-m-r` does after `make collect` and `make augment`."""
+    make_minari_dataset("local/hopper/medium-replay-v0", make_episodes(6, 11, 3, seed=0))
+    artifact = default_artifact_path("hopper-m-r")
+    artifact.parent.mkdir(parents=True)
+    write_synthetic(artifact, "hopper-m-r")
+    result = CliRunner().invoke(
+        app, ["train", "hopper-m-r", *TINY, "--out", str(tmp_path), "--json"]
+    )
+    assert result.exit_code == 0, result.output
+    config = json.loads((tmp_path / "hopper-m-r/td3bc-merged-seed0/config.json").read_text())
+    assert config["source_id"] == "local/hopper/medium-replay-v0"
+    assert config["artifact_path"] == str(artifact) and config["n_synthetic"] == 20
+
+
+def test_table_output_and_finished_run_is_not_retrained(tmp_path, tiny_pair):
+    source, artifact = tiny_pair
+    args = [
+        "train",
+        "hopper-m-r",
+        "--learner",
+        "iql",
+        "--data",
+        "source",
+        "--source",
+        source,
+        *TINY,
+        "--out",
+        str(tmp_path / "r"),
+    ]
+    first = CliRunner().invoke(app, args)
+    assert first.exit_code == 0, first.output
+    assert "D4RL-normalized" in first.stdout and "iql" in first.stdout
+    again = CliRunner().invoke(app, args)
+    assert again.exit_code == OverwriteError.exit_code and "already finished" in again.output
+
+
+def test_missing_artifact_tells_the_user_to_augment(tiny_pair):
+    source, _ = tiny_pair
+    result = CliRunner().invoke(app, ["train", "hopper-m-r", "--source", source, *TINY])
+    assert result.exit_code == 2
+    assert "make augment TASK=hopper-m-r" in " ".join(result.output.split())
+
+
+def test_interrupted_run_resumes_exactly(tmp_path, tiny_pair, monkeypatch):
+    source, artifact = tiny_pair
+    common = dict(
+        steps=30,
+        eval_every=10,
+        eval_episodes=1,
+        source=source,
+        artifact=artifact,
+        batch_size=32,
+        show_progress=False,
+    )
+    reference = run_training("hopper-m-r", out_dir=tmp_path / "a", **common)
+
+    real_evaluate, calls = train_module.evaluate_policy, []
+
+    def interrupt_on_second_evaluation(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real_evaluate(*args, **kwargs)
+
+    monkeypatch.setattr(train_module, "evaluate_policy", interrupt_on_second_evaluation)
+    with pytest.raises(KeyboardInterrupt):
+        run_training("hopper-m-r", out_dir=tmp_path / "b", **common)
+    monkeypatch.setattr(train_module, "evaluate_policy", real_evaluate)
+    resumed = run_training("hopper-m-r", out_dir=tmp_path / "b", **common)
+    assert resumed.resumed_from == 10 and resumed.steps == 30
+    assert resumed.evaluations == reference.evaluations
+    a = torch.load(tmp_path / "a/hopper-m-r/td3bc-merged-seed0/checkpoint.pt", weights_only=True)
+    b = torch.load(tmp_path / "b/hopper-m-r/td3bc-merged-seed0/checkpoint.pt", weights_only=True)
+    for key in a["learner"]["modules"]:
+        for name, tensor in a["learner"]["modules"][key].items():
+            assert torch.equal(tensor, b["learner"]["modules"][key][name]), (key, name)
+    steps = [
+        json.loads(x)["step"]
+        for x in (tmp_path / "b/hopper-m-r/td3bc-merged-seed0/metrics.jsonl")
+        .read_text()
+        .splitlines()
+    ]
+    assert steps == [10, 20, 30]
+
+
+def test_rerun_with_other_settings_is_refused(tmp_path, tiny_pair):
+    source, artifact = tiny_pair
+    common = dict(
+        steps=10,
+        eval_every=10,
+        eval_episodes=1,
+        source=source,
+        artifact=artifact,
+        batch_size=16,
+        show_progress=False,
+    )
+    run_training("hopper-m-r", out_dir=tmp_path, **common)
+    with pytest.raises(OverwriteError, match="eta"):
+        run_training("hopper-m-r", out_dir=tmp_path, eta=0.1, **{**common, "steps": 20})
+
+
+def small_transitions() -> Transitions:
+    """Episode A: rows 0-1, ends terminal; episode B: rows 2-4, ends by timeout."""
+    obs = np.arange(5, dtype=np.float32)[:, None] * 10
+    next_obs = obs + 1
+    return Transitions(
+        obs,
+        obs / 10,
+        np.arange(5, dtype=np.float32),
+        next_obs,
+        np.arange(5) == 1,
+        np.arange(5) == 4,
+    )
+
+
+def test_d3rlpy_rows_keep_each_transition_aligned():
+    rows = episode_arrays(small_transitions())
+    # a terminal episode keeps its rows; a timeout episode gets a closing row with its last s'
+    assert rows["observations"][:, 0].tolist() == [0, 10, 20, 30, 40, 41]
+    assert rows["terminals"].tolist() == [0, 1, 0, 0, 0, 0]
+    assert rows["timeouts"].tolist() == [0, 0, 0, 0, 0, 1]
+    assert rows["rewards"].tolist() == [0, 1, 2, 3, 4, 0]
+    one_step = episode_arrays(small_transitions(), every_row_is_an_episode=True)
+    # terminal row 1 stays one row; the four others each get their s' as a closing row
+    assert one_step["observations"][:, 0].tolist() == [0, 1, 10, 20, 21, 30, 31, 40, 41]
+    assert one_step["timeouts"].sum() == 4 and one_step["terminals"].tolist()[2] == 1
+
+
+def test_d3rlpy_learner_trains_a_few_steps(tmp_path, tiny_pair):
+    pytest.importorskip("d3rlpy", reason="the d3rlpy extra is not installed")
+    from hipode_pipeline.learners.external import build_d3rlpy_buffer
+
+    real_buffer, mixed = build_d3rlpy_buffer(small_transitions(), small_transitions(), 0.5)
+    assert real_buffer.transition_count == 5
+    picked = [
+        real_buffer.transition_picker(ep, i)
+        for ep in real_buffer.episodes
+        for i in range(ep.transition_count)
+    ]
+    assert [(t.observation[0], t.next_observation[0], float(t.reward[0])) for t in picked] == [
+        (0, 10, 0),
+        (10, 0, 1),
+        (20, 30, 2),
+        (30, 40, 3),
+        (40, 41, 4),
+    ]  # d3rlpy zeroes a terminal's successor
+    assert mixed.sample_transition_batch(8).observations.shape == (8, 1)
+    source, artifact = tiny_pair
+    result = run_training(
+        "hopper-m-r",
+        "d3rlpy:TD3PlusBC",
+        steps=20,
+        eval_every=10,
+        eval_episodes=1,
+        out_dir=tmp_path,
+        source=source,
+        artifact=artifact,
+        batch_size=32,
+        show_progress=False,
+    )
+    assert result.steps == 20 and result.last["return_mean"] is not None
