@@ -35,8 +35,12 @@ train: $(STAMP)
 datasets: $(STAMP)
 	$(BIN)/hipode datasets list $(ARGS)
 
+# each benchmark writes its figures, command and machine load to bench/results/
 bench: $(STAMP)
-	$(BIN)/python bench/collect.py $(ARGS)
+	$(BIN)/python bench/collect.py
+	$(BIN)/python bench/augment.py
+	$(BIN)/python bench/models_precision.py --write
+	$(BIN)/python bench/learners.py
 
 lint: $(STAMP)
 	$(BIN)/ruff check hipode_pipeline tests bench
