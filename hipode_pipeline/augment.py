@@ -11,10 +11,8 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
 import platform
 import subprocess
-import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
@@ -44,6 +42,7 @@ from hipode_pipeline.errors import (
     HipodeError,
     OverwriteError,
 )
+from hipode_pipeline.files import write_json_atomic
 from hipode_pipeline.models.generators import GeneratorConfig, Generators, train_generators
 from hipode_pipeline.paths import use_datasets_root
 from hipode_pipeline.tasks import Task, get_task
@@ -557,7 +556,7 @@ def run_augment(
         artifact_sha256=file_sha256(out),
         content_checksum=stored["checksum"],
     )
-    _write_json_atomic(summary_path(out), summary.to_dict())
+    write_json_atomic(summary_path(out), summary.to_dict())
     return summary
 
 
@@ -715,11 +714,3 @@ def _git_commit() -> str | None:
     if done.returncode != 0:
         return None
     return done.stdout.strip() or None
-
-
-def _write_json_atomic(path: Path, data: dict[str, Any]) -> None:
-    handle, temp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    with os.fdopen(handle, "w") as f:
-        json.dump(data, f, indent=2, sort_keys=True)
-        f.write("\n")
-    os.replace(temp_name, path)

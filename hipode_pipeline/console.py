@@ -23,7 +23,7 @@ out = Console()
 
 
 def progress(*, disable: bool = False) -> Progress:
-    """A progress display with count, rate and ETA; set the task fields `rate` and `info` as it runs."""
+    """A progress display with count, rate and ETA; task fields `rate` and `info` show extras."""
     return Progress(
         TextColumn("[bold]{task.description}"),
         BarColumn(),

@@ -5,8 +5,6 @@ provenance records, so any library that reads D4RL-style HDF5 can train on it.""
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -18,6 +16,7 @@ from hipode_pipeline.artifact import Artifact, read_artifact
 from hipode_pipeline.data.load import load_source
 from hipode_pipeline.data.transitions import FIELDS, SourceInfo, Transitions, validate_transitions
 from hipode_pipeline.errors import DataFormatError, DatasetNotFoundError, OverwriteError
+from hipode_pipeline.files import atomic_path
 
 MERGED_SCHEMA = {"name": "hipode-merged", "version": "1.0"}
 PROVENANCE_ATTR = "provenance"  # JSON: schema, source record, artifact manifest
@@ -134,22 +133,14 @@ def write_merged(merged: MergedData, out: Path, *, force: bool = False) -> Path:
         "episode_ends": "synthetic rows (not terminal) carry timeouts = 1: one-step episodes; "
         "read them with next_observations",
     }
-    out.parent.mkdir(parents=True, exist_ok=True)
-    handle, temp_name = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
-    os.close(handle)
-    try:
-        with h5py.File(temp_name, "w") as f:
-            for name, array in all_rows.arrays().items():
-                f.create_dataset(name, data=array)
-            f.create_dataset("is_synthetic", data=merged.is_synthetic())
-            for key in ("env_id", "ref_min_score", "ref_max_score"):
-                if merged.source.get(key) is not None:
-                    f.attrs[key] = merged.source[key]
-            f.attrs[PROVENANCE_ATTR] = json.dumps(provenance, sort_keys=True, default=str)
-        os.replace(temp_name, out)
-    except BaseException:
-        Path(temp_name).unlink(missing_ok=True)
-        raise
+    with atomic_path(out) as temp, h5py.File(temp, "w") as f:
+        for name, array in all_rows.arrays().items():
+            f.create_dataset(name, data=array)
+        f.create_dataset("is_synthetic", data=merged.is_synthetic())
+        for key in ("env_id", "ref_min_score", "ref_max_score"):
+            if merged.source.get(key) is not None:
+                f.attrs[key] = merged.source[key]
+        f.attrs[PROVENANCE_ATTR] = json.dumps(provenance, sort_keys=True, default=str)
     return out
 
 

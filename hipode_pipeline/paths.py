@@ -9,7 +9,7 @@ DATASETS_ENV_VAR = "MINARI_DATASETS_PATH"
 
 
 def datasets_root() -> Path:
-    """The local dataset root: $MINARI_DATASETS_PATH, else ./datasets (Minari reads the same variable)."""
+    """The dataset root: $MINARI_DATASETS_PATH, else ./datasets (Minari reads the same variable)."""
     return Path(os.environ.get(DATASETS_ENV_VAR, "datasets")).expanduser().resolve()
 
 

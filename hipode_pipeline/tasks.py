@@ -65,13 +65,18 @@ class Task:
     def augment_params(self, learner: str = "td3bc") -> AugmentParams:
         if learner not in self.params:
             raise UnknownTaskError(
-                f"unknown learner '{learner}' for task {self.name}; expected one of {sorted(self.params)}"
+                f"unknown learner '{learner}' for task {self.name}; "
+                f"expected one of {sorted(self.params)}"
             )
         return self.params[learner]
 
     def normalized_score(self, episode_return: float) -> float:
         """D4RL-normalized score: 0 is a random policy, 100 an expert."""
-        return 100.0 * (episode_return - self.ref_min_score) / (self.ref_max_score - self.ref_min_score)
+        return (
+            100.0
+            * (episode_return - self.ref_min_score)
+            / (self.ref_max_score - self.ref_min_score)
+        )
 
 
 def _load_toml(name: str) -> dict:
@@ -92,7 +97,11 @@ def all_tasks() -> dict[str, Task]:
             given = spec.get(learner)
             if given is None and learner == "iql_v2":
                 continue
-            values = {**base, **learner_defaults.get(learner.removesuffix("_v2"), {}), **(given or {})}
+            values = {
+                **base,
+                **learner_defaults.get(learner.removesuffix("_v2"), {}),
+                **(given or {}),
+            }
             params[learner] = AugmentParams(
                 eta=float(values["eta"]),
                 lam=float(values["lam"]),
@@ -115,7 +124,7 @@ def all_tasks() -> dict[str, Task]:
 
 
 def get_task(name: str) -> Task:
-    """Look a task up by short (hopper-m-r) or long (hopper-medium-replay) name, with or without -v0."""
+    """A task by short (hopper-m-r) or long (hopper-medium-replay) name; -v0/-v2 optional."""
     tasks = all_tasks()
     key = name.strip().lower().removesuffix("-v0").removesuffix("-v2")
     if key in tasks:

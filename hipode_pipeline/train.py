@@ -15,10 +15,8 @@ exactly as an uninterrupted run would.
 from __future__ import annotations
 
 import json
-import os
 import platform
 import shutil
-import tempfile
 import time
 import tomllib
 from dataclasses import asdict, dataclass, field
@@ -33,6 +31,12 @@ from hipode_pipeline.artifact import default_artifact_path
 from hipode_pipeline.device import select_device
 from hipode_pipeline.errors import DatasetNotFoundError, HipodeError, OverwriteError
 from hipode_pipeline.evaluate import EvalResult, evaluate_policy
+from hipode_pipeline.files import (
+    load_torch,
+    save_torch_atomic,
+    write_json_atomic,
+    write_text_atomic,
+)
 from hipode_pipeline.learners import LEARNERS, learner_class
 from hipode_pipeline.merge import MergedData, load_merged
 from hipode_pipeline.paths import stages_dir
@@ -95,33 +99,12 @@ def versions() -> dict[str, str]:
     return found
 
 
-def _write_json(path: Path, data: Any) -> None:
-    handle, temp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    with os.fdopen(handle, "w") as f:
-        json.dump(data, f, indent=2, sort_keys=True, default=str)
-    os.replace(temp, path)
-
-
 def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
-    """torch.save to a temp file in the same folder, then rename: never half a file."""
-    handle, temp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(handle)
-    try:
-        torch.save(state, temp)
-        os.replace(temp, path)
-    except BaseException:
-        Path(temp).unlink(missing_ok=True)
-        raise
+    save_torch_atomic(path, state)
 
 
 def load_checkpoint(path: Path) -> dict[str, Any]:
-    try:
-        return torch.load(path, weights_only=True, map_location="cpu")
-    except Exception as error:  # a truncated or foreign file: say which and what to do
-        raise HipodeError(
-            f"{path}: expected a checkpoint written by `hipode train` ({error}); "
-            "delete it or pass --force"
-        ) from None
+    return load_torch(path, "a checkpoint written by `hipode train` (delete it or pass --force)")
 
 
 def resolve_data(
@@ -292,7 +275,7 @@ def run_training(
         resumed_from = model.step
         console.err.print(f"resuming {run_dir} from step {resumed_from}")
     _truncate_metrics(metrics_path, resumed_from)
-    _write_json(run_dir / "config.json", config)
+    write_json_atomic(run_dir / "config.json", config)
 
     def evaluate() -> EvalResult:
         return evaluate_policy(
@@ -393,7 +376,7 @@ def finish_run(result: TrainResult, eval_episodes: int) -> TrainResult:
         "label": "last evaluation (the result)",
     }
     result.best = {**best, "label": BEST_LABEL}
-    _write_json(Path(result.run_dir) / "scores.json", result.to_dict())
+    write_json_atomic(Path(result.run_dir) / "scores.json", result.to_dict())
     return result
 
 
@@ -434,10 +417,7 @@ def _truncate_metrics(path: Path, step: int) -> None:
     kept = [
         line for line in path.read_text().splitlines() if line and json.loads(line)["step"] <= step
     ]
-    handle, temp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    with os.fdopen(handle, "w") as f:
-        f.write("".join(line + "\n" for line in kept))
-    os.replace(temp, path)
+    write_text_atomic(path, "".join(line + "\n" for line in kept))
 
 
 def score_table_rows(result: TrainResult) -> list[list[Any]]:

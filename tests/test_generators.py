@@ -11,6 +11,7 @@ import torch
 
 from hipode_pipeline.data.transitions import Transitions
 from hipode_pipeline.errors import DataFormatError
+from hipode_pipeline.files import file_sha256
 from hipode_pipeline.models import training
 from hipode_pipeline.models.generators import (
     MODEL_NAMES,
@@ -128,7 +129,7 @@ def test_train_generators_contract_and_cache(transitions, tmp_path):
     assert time.perf_counter() - started < 5.0
     assert all(r["cached"] for r in again.training_report.values())
     assert again.checkpoint_hashes == gen.checkpoint_hashes
-    assert again.checkpoint_hashes["value"] == training.file_sha256(folder / "value.pt")
+    assert again.checkpoint_hashes["value"] == file_sha256(folder / "value.pt")
     for one, two in zip(outputs, sample_everything(again), strict=True):
         assert torch.equal(one, two)
 

@@ -21,7 +21,9 @@ def user_errors(fn):
         try:
             return fn(*args, **kwargs)
         except HipodeError as error:
-            console.err.print(f"[bold red]error:[/] {escape(str(error))}", highlight=False)
+            console.err.print(
+                f"[bold red]error:[/] {escape(str(error))}", highlight=False, soft_wrap=True
+            )
             raise typer.Exit(code=error.exit_code) from None
 
     return wrapper

@@ -29,7 +29,11 @@ def tasks_command(json_output: JsonFlag = False) -> None:
         console.print_json(rows)
         return
     columns = list(rows[0])
-    console.out.print(console.table("Tasks (eta, lambda: TD3+BC, Table 6)", columns, [[r[c] for c in columns] for r in rows]))
+    console.out.print(
+        console.table(
+            "Tasks (eta, lambda: TD3+BC, Table 6)", columns, [[r[c] for c in columns] for r in rows]
+        )
+    )
 
 
 def register(app: typer.Typer) -> None:

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TypeVar
@@ -13,6 +11,7 @@ import numpy as np
 import torch
 
 from hipode_pipeline.errors import DataFormatError
+from hipode_pipeline.files import write_json_atomic
 
 ArrayLike = TypeVar("ArrayLike", np.ndarray, torch.Tensor)
 
@@ -69,15 +68,8 @@ class StateNormalizer:
         return cls(mean=mean, std=std)
 
     def save(self, path: Path) -> None:
-        """Write as JSON atomically (temp file in the same folder, then rename)."""
-        path = Path(path)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give what open() would
-        with os.fdopen(fd, "w") as f:
-            json.dump(self.to_dict(), f, indent=2)
-        os.replace(tmp, path)
+        """Write as JSON atomically."""
+        write_json_atomic(path, self.to_dict())
 
     @classmethod
     def load(cls, path: Path) -> StateNormalizer:

@@ -96,7 +96,9 @@ def validate_transitions(arrays: dict[str, np.ndarray], origin: str | Path) -> T
             raise DataFormatError(origin, name, "a dataset field", "nothing (missing)")
     obs = arrays["observations"]
     if obs.ndim != 2 or obs.shape[0] == 0 or obs.shape[1] == 0:
-        raise DataFormatError(origin, "observations", "a non-empty 2-D array (N, obs_dim)", obs.shape)
+        raise DataFormatError(
+            origin, "observations", "a non-empty 2-D array (N, obs_dim)", obs.shape
+        )
     n, obs_dim = obs.shape
     act = arrays["actions"]
     if act.ndim != 2 or act.shape[1] == 0:
@@ -124,17 +126,23 @@ def validate_transitions(arrays: dict[str, np.ndarray], origin: str | Path) -> T
             if not (array.dtype == np.bool_ or np.issubdtype(array.dtype, np.number)):
                 raise DataFormatError(origin, name, "a boolean or 0/1 array", array.dtype)
             if array.dtype != np.bool_ and not np.isin(array, (0, 1)).all():
-                raise DataFormatError(origin, name, "only 0/1 values", np.unique(array)[:5].tolist())
+                raise DataFormatError(
+                    origin, name, "only 0/1 values", np.unique(array)[:5].tolist()
+                )
             converted[name] = array.astype(np.bool_)
             continue
-        if not np.issubdtype(array.dtype, np.number) or np.issubdtype(array.dtype, np.complexfloating):
+        if not np.issubdtype(array.dtype, np.number) or np.issubdtype(
+            array.dtype, np.complexfloating
+        ):
             raise DataFormatError(origin, name, "a real-valued numeric array", array.dtype)
         with np.errstate(over="ignore"):  # an out-of-range float64 becomes inf, reported just below
             array = array.astype(np.float32, copy=False)
         bad = ~np.isfinite(array)
         if bad.any():
             first = int(np.argwhere(bad)[0][0])
-            raise DataFormatError(origin, name, "finite values", f"{int(bad.sum())} NaN/inf (first at row {first})")
+            raise DataFormatError(
+                origin, name, "finite values", f"{int(bad.sum())} NaN/inf (first at row {first})"
+            )
         converted[name] = np.ascontiguousarray(array)
     both = converted["terminals"] & converted["timeouts"]
     if both.any():

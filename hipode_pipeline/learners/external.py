@@ -112,7 +112,8 @@ def _train_d3rlpy(
 ):
     """Train d3rlpy's `algo_name` (e.g. TD3PlusBC) on the merged data, evaluate it like ours and
     write config.json, metrics.jsonl and scores.json (no resume: d3rlpy keeps its own state)."""
-    from hipode_pipeline.train import TrainResult, _write_json, finish_run, versions
+    from hipode_pipeline.files import write_json_atomic
+    from hipode_pipeline.train import TrainResult, finish_run, versions
 
     d3rlpy = require_d3rlpy()
     config_class = getattr(d3rlpy.algos, f"{algo_name}Config", None)
@@ -151,7 +152,7 @@ def _train_d3rlpy(
         "artifact_path": None if merged.artifact_path is None else str(merged.artifact_path),
         "versions": {**versions(), "d3rlpy": d3rlpy.__version__},
     }
-    _write_json(run_dir / "config.json", config)
+    write_json_atomic(run_dir / "config.json", config)
     evaluations: list[dict[str, Any]] = []
     train_seconds = 0.0
     with (

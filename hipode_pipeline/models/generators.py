@@ -20,6 +20,7 @@ from hipode_pipeline.data.normalizer import StateNormalizer
 from hipode_pipeline.data.transitions import Transitions
 from hipode_pipeline.device import select_device
 from hipode_pipeline.errors import DataFormatError, HipodeError
+from hipode_pipeline.files import file_sha256, save_torch_atomic, write_json_atomic
 from hipode_pipeline.models import training
 from hipode_pipeline.models.cvae import CVAE
 from hipode_pipeline.models.dynamics import LOSS_FORMS, DynamicsEnsemble
@@ -353,13 +354,13 @@ def train_generators(
     cache_dir = cache_dir_for(cache_root, source_sha256, config, seed)
     cache_dir.mkdir(parents=True, exist_ok=True)
     if not (cache_dir / "config.json").exists():
-        training.write_json_atomic(
-            {"source_sha256": source_sha256, "seed": seed, "config": config.to_dict()},
+        write_json_atomic(
             cache_dir / "config.json",
+            {"source_sha256": source_sha256, "seed": seed, "config": config.to_dict()},
         )
     normalizer = StateNormalizer.fit(transitions.observations, eps=config.normalizer_eps)
     if not (cache_dir / "normalizer.json").exists():
-        training.write_json_atomic(normalizer.to_dict(), cache_dir / "normalizer.json")
+        write_json_atomic(cache_dir / "normalizer.json", normalizer.to_dict())
 
     models = build_models(transitions.obs_dim, transitions.act_dim, config, seed)
     set_data_scales(models, transitions, config)
@@ -394,13 +395,13 @@ def train_generators(
                 progress=prog,
                 **settings[name],
             )
-            training.save_atomic(models[name].state_dict(), weights_path)
-            training.write_json_atomic(record.to_dict(), record_path)
+            save_torch_atomic(weights_path, models[name].state_dict())
+            write_json_atomic(record_path, record.to_dict())
             (cache_dir / f"{name}.ckpt.pt").unlink(missing_ok=True)
             report[name] = record.to_dict()
     for model in models.values():
         model.eval().requires_grad_(False)
-    hashes = {name: training.file_sha256(cache_dir / f"{name}.pt") for name in MODEL_NAMES}
+    hashes = {name: file_sha256(cache_dir / f"{name}.pt") for name in MODEL_NAMES}
     return Generators(
         normalizer=normalizer,
         config=config,

@@ -7,10 +7,6 @@ from __future__ import annotations
 import contextlib
 import copy
 import hashlib
-import io
-import json
-import os
-import tempfile
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
@@ -22,7 +18,7 @@ from rich.progress import Progress, TaskID
 from torch import Tensor, nn
 
 from hipode_pipeline.console import rate_text
-from hipode_pipeline.errors import DataFormatError
+from hipode_pipeline.files import load_torch, save_torch_atomic
 
 KEEP_BEST_MODES = ("none", "model", "member")
 PRECISIONS = ("fp32", "bf16")
@@ -72,59 +68,18 @@ def autocast(device: torch.device, precision: str):
     )
 
 
-def _readable_temp(path: Path) -> tuple[int, str]:
-    """A temp file beside `path` with the permissions a plain open() would give (mkstemp: 0600)."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)
-    return fd, tmp
+def save_atomic(obj: Any, path: Path) -> None:  # TEMPORARY alias, removed once verify.py moves
+    save_torch_atomic(path, obj)
 
 
-def save_atomic(obj: Any, path: Path) -> None:
-    """torch.save into memory, then a temp file in the same folder renamed over `path`.
+def write_json_atomic(data: Any, path: Path) -> None:  # TEMPORARY alias
+    from hipode_pipeline.files import write_json_atomic as write
 
-    Serializing to a buffer keeps the bytes independent of the file name (torch.save names the
-    archive's root folder after the file), so equal weights give equal sha256 checksums.
-    """
-    buffer = io.BytesIO()
-    torch.save(obj, buffer)
-    fd, tmp = _readable_temp(path)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(buffer.getbuffer())
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-
-
-def write_json_atomic(data: Any, path: Path) -> None:
-    fd, tmp = _readable_temp(path)
-    with os.fdopen(fd, "w") as f:
-        json.dump(data, f, indent=2, sort_keys=True)
-    os.replace(tmp, path)
+    write(path, data)
 
 
 def load_tensors(path: Path, what: str) -> Any:
-    """torch.load with weights_only=True; an unreadable file is the user's to delete."""
-    try:
-        return torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as error:  # torch raises several types for truncated or foreign files
-        raise DataFormatError(
-            path,
-            "(file)",
-            f"{what} readable by torch.load(weights_only=True); delete it to retrain",
-            type(error).__name__,
-        ) from None
-
-
-def file_sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
+    return load_torch(path, f"{what}; delete it to retrain")
 
 
 class TensorData:
@@ -232,7 +187,8 @@ def fit(
         best = _BestWeights(keep_best, initial.clone(), kept)
 
     def save_checkpoint() -> None:
-        save_atomic(
+        save_torch_atomic(
+            checkpoint_path,
             {
                 "model": model.state_dict(),
                 "optimizer": optimizer.state_dict(),
@@ -244,7 +200,6 @@ def fit(
                 "best_loss": best.loss,
                 "best_state": best.state,
             },
-            checkpoint_path,
         )
         checkpoint_written(name, step)
 
