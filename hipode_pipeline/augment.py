@@ -212,7 +212,10 @@ def generate(
     terminal = termination_rule(env_id, source.obs_dim, origin=f"source (env {env_id})")
     target = synthetic_count(config.eta, len(source))
     if target < 1:
-        raise ValueError(f"eta={config.eta} keeps no transition of {len(source)}")
+        raise GenerationConfigError(
+            f"--eta {config.eta}: keeps no transition of the source's {len(source)}; "
+            f"expected eta >= {0.5 / len(source):.2g}"
+        )
     source_norm = normalizer.normalize(torch.as_tensor(source.observations, device=device))
     box = (
         (source_norm.min(0).values, source_norm.max(0).values)
