@@ -4,7 +4,16 @@ from __future__ import annotations
 
 import typer
 
-from hipode_pipeline.commands import augment, collect, datasets, merge, tasks, train
+from hipode_pipeline.commands import (
+    artifacts,
+    augment,
+    collect,
+    datasets,
+    merge,
+    tasks,
+    train,
+    verify,
+)
 
 app = typer.Typer(
     help="HIPODE: policy-decoupled, high-return data augmentation for offline RL.",
@@ -13,7 +22,7 @@ app = typer.Typer(
     add_completion=False,
 )
 
-for group in (tasks, collect, datasets, augment, merge, train):
+for group in (tasks, collect, datasets, augment, merge, train, verify, artifacts):
     group.register(app)
 
 

@@ -68,16 +68,6 @@ def autocast(device: torch.device, precision: str):
     )
 
 
-def save_atomic(obj: Any, path: Path) -> None:  # TEMPORARY alias, removed once verify.py moves
-    save_torch_atomic(path, obj)
-
-
-def write_json_atomic(data: Any, path: Path) -> None:  # TEMPORARY alias
-    from hipode_pipeline.files import write_json_atomic as write
-
-    write(path, data)
-
-
 def load_tensors(path: Path, what: str) -> Any:
     return load_torch(path, f"{what}; delete it to retrain")
 

@@ -1,0 +1,636 @@
+"""`hipode verify`: how authentic synthetic transitions are, judged by the MuJoCo simulator itself.
+
+For a seeded sample of an artifact's transitions the simulator is put into each synthetic state,
+stepped with the synthetic action, and its next state and reward are compared with the synthetic
+ones. The same is done for plain model rollouts (random source state, action from a behaviour
+CVAE, next state and reward from the artifact's own dynamics ensemble), the usual model-based
+augmentation, so the two can be compared.
+
+Definitions (per transition):
+- next-state error: mean over dimensions of |s'_synthetic - s'_simulator| / std, std being the
+  source's per-dimension next-state std: "how many source stds off, per dimension, on average".
+- reward error: |r_synthetic - r_simulator| in reward units.
+- within tolerance: next-state error <= tolerance and reward error <= tolerance * source reward
+  std (default tolerance 0.1: a tenth of a std per dimension).
+- novelty: L2 distance from s'_synthetic to the nearest source state, in z-scored units (the
+  same measure `hipode augment` reports).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from hipode_pipeline import console
+from hipode_pipeline.artifact import read_artifact
+from hipode_pipeline.augment import derive_seed, novelty
+from hipode_pipeline.data.load import load_source
+from hipode_pipeline.data.normalizer import StateNormalizer
+from hipode_pipeline.data.transitions import Transitions
+from hipode_pipeline.device import select_device
+from hipode_pipeline.envs import termination_rule
+from hipode_pipeline.errors import DataFormatError, HipodeError, OverwriteError
+from hipode_pipeline.files import (
+    atomic_path,
+    file_sha256,
+    save_torch_atomic,
+    write_json_atomic,
+    write_text_atomic,
+)
+from hipode_pipeline.models import training
+from hipode_pipeline.models.cvae import CVAE
+from hipode_pipeline.models.generators import (
+    MODEL_NAMES,
+    GeneratorConfig,
+    Generators,
+    cache_dir_for,
+    train_generators,
+)
+from hipode_pipeline.paths import use_datasets_root
+from hipode_pipeline.simulator import check_env_id, clipped_velocity_rows, step_from_observations
+
+# a tenth of a source std per next-state dimension (and of the reward std) counts as authentic
+DEFAULT_TOLERANCE = 0.1
+# added to the source stds before dividing, so a constant dimension stays finite
+STD_EPS = 1e-6
+SUMMARY_QUANTITIES = ("next_state_error", "reward_error", "novelty")
+
+
+class VerifySettingError(HipodeError):
+    """A verify setting outside its valid range."""
+
+
+@dataclass(frozen=True)
+class BehaviourCVAEConfig:
+    """The baseline's behaviour policy: a CVAE a | s trained on the source (small budget)."""
+
+    steps: int = 5_000  # Adam steps
+    batch_size: int = 256  # transitions per step
+    lr: float = 1e-3  # Adam learning rate
+    hidden: int = 750  # hidden width of encoder and decoder (as the generators' CVAEs)
+    latent_per_action_dim: int = 2  # latent size = this * action dim (BCQ's choice)
+    kl_weight: float = 0.5  # weight of the KL term
+    latent_clip: float = 0.5  # |z| bound when sampling
+    heldout_fraction: float = 0.05  # share of source transitions never trained on
+    heldout_eval_rows: int = 4096  # held-out rows per evaluation
+    eval_every: int = 500  # evaluate and keep the best weights every this many steps
+    checkpoint_every: int = 2_000  # resumable checkpoint every this many steps
+
+    def hash(self) -> str:
+        """The cache key of trained weights."""
+        return hashlib.sha256(json.dumps(asdict(self), sort_keys=True).encode()).hexdigest()
+
+
+@dataclass(frozen=True, eq=False)
+class TransitionChecks:
+    """Per-transition comparison of one set of transitions with the simulator."""
+
+    next_state_error: np.ndarray  # (K,) mean |Δs'| / source next-state std
+    reward_error: np.ndarray  # (K,) |Δr| in reward units
+    within_tolerance: np.ndarray  # (K,) bool
+    novelty: np.ndarray  # (K,) L2 to the nearest source state, z-scored units
+    terminal_agrees: np.ndarray  # (K,) bool: terminal flag equals the simulator's terminated
+    clipped_input: np.ndarray  # (K,) bool: input velocities at the env's observation clip bound
+    simulator_seconds: float  # wall time of the simulator steps
+    rows: np.ndarray | None = (
+        None  # (K,) row indices: into the artifact (HIPODE), source (baseline)
+    )
+
+    def summary(self) -> dict[str, Any]:
+        n = int(self.next_state_error.size)
+        result: dict[str, Any] = {"n": n}
+        for name in SUMMARY_QUANTITIES:
+            values = getattr(self, name).astype(np.float64)
+            result[f"{name}_mean"] = float(values.mean())
+            result[f"{name}_median"] = float(np.median(values))
+            result[f"{name}_p90"] = float(np.quantile(values, 0.9))
+        result["within_tolerance"] = float(self.within_tolerance.mean())
+        result["terminal_agreement"] = float(self.terminal_agrees.mean())
+        result["clipped_input_rows"] = int(self.clipped_input.sum())
+        result["simulator_rows_per_second"] = n / max(self.simulator_seconds, 1e-9)
+        return result
+
+    def arrays(self) -> dict[str, list]:
+        return {
+            "row": None if self.rows is None else self.rows.astype(int).tolist(),
+            "next_state_error": _rounded(self.next_state_error),
+            "reward_error": _rounded(self.reward_error),
+            "novelty": _rounded(self.novelty),
+            "terminal_agrees": self.terminal_agrees.astype(bool).tolist(),
+        }
+
+
+@dataclass(eq=False)
+class VerifyReport:
+    """What `hipode verify` found: HIPODE's sample and the plain-rollout baseline side by side."""
+
+    artifact: str  # the verified file
+    artifact_sha256: str  # sha256 of its bytes
+    env_id: str  # the simulator used
+    source_id: str  # the source dataset the artifact was built from
+    source_sha256: str  # its content hash (checked against the manifest)
+    seed: int  # seed of the samples, the behaviour CVAE's sampling and the dynamics' sampling
+    tolerance: float  # next-state (and reward, in reward stds) tolerance
+    hipode: TransitionChecks  # the artifact's sampled transitions
+    baseline: TransitionChecks | None  # plain model rollouts, None with --no-baseline
+    baseline_details: dict[str, Any]  # behaviour CVAE record, dynamics provenance
+    seconds: dict[str, float]  # wall time per phase
+    json_path: str | None = None  # where the report was written
+    png_path: str | None = None  # where the plot was written
+
+    def rows(self) -> list[list[Any]]:
+        """Table rows: HIPODE, then the baseline."""
+        rows = [_table_row("HIPODE", self.hipode.summary())]
+        if self.baseline is not None:
+            rows.append(_table_row("plain model rollout", self.baseline.summary()))
+        return rows
+
+    def to_dict(self, *, per_transition: bool = True) -> dict[str, Any]:
+        data: dict[str, Any] = {
+            "artifact": self.artifact,
+            "artifact_sha256": self.artifact_sha256,
+            "env_id": self.env_id,
+            "source_id": self.source_id,
+            "source_sha256": self.source_sha256,
+            "seed": self.seed,
+            "tolerance": self.tolerance,
+            "definitions": {
+                "next_state_error": "mean over dims of |s'_synthetic - s'_simulator| / "
+                "source next-state std",
+                "reward_error": "|r_synthetic - r_simulator|, reward units",
+                "within_tolerance": "next_state_error <= tolerance and "
+                "reward_error <= tolerance * source reward std",
+                "novelty": "L2 from s'_synthetic to the nearest source state, z-scored",
+                "terminal_agreement": "synthetic terminal flag == simulator's terminated",
+            },
+            "hipode": self.hipode.summary(),
+            "baseline": None if self.baseline is None else self.baseline.summary(),
+            "baseline_details": self.baseline_details,
+            "seconds": self.seconds,
+            "json": self.json_path,
+            "png": self.png_path,
+        }
+        if per_transition:
+            data["per_transition"] = {
+                "hipode": self.hipode.arrays(),
+                "baseline": None if self.baseline is None else self.baseline.arrays(),
+            }
+        return data
+
+
+TABLE_COLUMNS = [
+    "data",
+    "n",
+    "next-state err mean",
+    "next-state err median",
+    "reward err mean",
+    "reward err median",
+    "within tol %",
+    "novelty mean",
+    "novelty median",
+    "terminal agree %",
+]
+
+
+def _table_row(name: str, s: dict[str, Any]) -> list[Any]:
+    return [
+        name,
+        s["n"],
+        s["next_state_error_mean"],
+        s["next_state_error_median"],
+        s["reward_error_mean"],
+        s["reward_error_median"],
+        round(100 * s["within_tolerance"], 1),
+        s["novelty_mean"],
+        s["novelty_median"],
+        round(100 * s["terminal_agreement"], 1),
+    ]
+
+
+def _rounded(values: np.ndarray) -> list[float | None]:
+    """Six significant digits; a non-finite value becomes null, so the file stays strict JSON."""
+    return [float(f"{v:.6g}") if np.isfinite(v) else None for v in np.asarray(values, np.float64)]
+
+
+def output_paths(artifact: Path, out_dir: Path | None = None) -> tuple[Path, Path]:
+    """(<out_dir>/<artifact name>.verify.json, .verify.png); out_dir defaults to the artifact's."""
+    folder = Path(out_dir) if out_dir is not None else Path(artifact).parent
+    name = Path(artifact).name
+    return folder / f"{name}.verify.json", folder / f"{name}.verify.png"
+
+
+def check_transitions(
+    env_id: str,
+    transitions: Transitions,
+    *,
+    next_state_std: np.ndarray,
+    reward_std: float,
+    normalizer: StateNormalizer,
+    source_norm: torch.Tensor,
+    tolerance: float,
+    seed: int,
+    origin: str | Path,
+    progress=None,
+    label: str = "simulate",
+) -> TransitionChecks:
+    """Step the simulator from every row of `transitions` and compare (see the module doc)."""
+    bar = None
+    if progress is not None:
+        bar = progress.add_task(label, total=len(transitions), rate="", info="")
+    started = time.perf_counter()
+
+    def advance(done: int) -> None:
+        if bar is not None:
+            elapsed = time.perf_counter() - started
+            progress.update(bar, completed=done, rate=console.rate_text(done, elapsed, "rows"))
+
+    sim_next, sim_rewards, sim_terminated = step_from_observations(
+        env_id,
+        transitions.observations,
+        transitions.actions,
+        origin=origin,
+        progress_callback=advance,
+    )
+    seconds = time.perf_counter() - started
+    difference = np.abs(transitions.next_observations.astype(np.float64) - sim_next)
+    state_error = (difference / (next_state_std + STD_EPS)).mean(axis=1)
+    reward_error = np.abs(transitions.rewards.astype(np.float64) - sim_rewards)
+    # a non-finite synthetic value is as far from the simulator as it gets
+    state_error = np.where(np.isfinite(state_error), state_error, np.inf)
+    reward_error = np.where(np.isfinite(reward_error), reward_error, np.inf)
+    within = (state_error <= tolerance) & (reward_error <= tolerance * (reward_std + STD_EPS))
+    next_norm = normalizer.normalize(transitions.next_observations.astype(np.float32))
+    distances = novelty(
+        next_norm.astype(np.float32), source_norm, sample=len(transitions), seed=seed
+    )
+    return TransitionChecks(
+        next_state_error=state_error,
+        reward_error=reward_error,
+        within_tolerance=within,
+        novelty=distances.astype(np.float64),
+        terminal_agrees=transitions.terminals.astype(bool) == sim_terminated,
+        clipped_input=clipped_velocity_rows(env_id, transitions.observations),
+        simulator_seconds=seconds,
+    )
+
+
+def behaviour_cvae(
+    source: Transitions,
+    normalizer: StateNormalizer,
+    config: BehaviourCVAEConfig,
+    *,
+    cache_dir: Path,
+    seed: int,
+    device: torch.device,
+    progress=None,
+) -> tuple[CVAE, dict[str, Any]]:
+    """A CVAE a | s (s z-scored) trained on the source, or loaded from
+    `cache_dir/behaviour_cvae-<config hash[:12]>-seed<seed>.pt`; returns the model and its
+    training record."""
+    weights = cache_dir / f"behaviour_cvae-{config.hash()[:12]}-seed{seed}.pt"
+    record_path = weights.with_suffix(".json")
+    with training.seeded_init(training.derive_seed(seed, "init:behaviour_cvae")):
+        model = CVAE(
+            source.act_dim,
+            source.obs_dim,
+            latent_dim=config.latent_per_action_dim * source.act_dim,
+            hidden=config.hidden,
+            kl_weight=config.kl_weight,
+            latent_clip=config.latent_clip,
+            squash=True,
+        )
+    # the source's action range bounds the decoder, as for the inverse action model
+    model.set_output_bounds(
+        torch.from_numpy(source.actions.min(0)), torch.from_numpy(source.actions.max(0))
+    )
+    model.to(device)
+    if weights.exists() and record_path.exists():
+        model.load_state_dict(training.load_tensors(weights, "a behaviour CVAE weights file"))
+        record = {**json.loads(record_path.read_text()), "cached": True}
+    else:
+        tensors = {
+            "s": torch.from_numpy(normalizer.normalize(source.observations).astype(np.float32)),
+            "a": torch.from_numpy(np.ascontiguousarray(source.actions, dtype=np.float32)),
+        }
+        data = training.TensorData(
+            {k: v.to(device) for k, v in tensors.items()},
+            config.heldout_fraction,
+            config.heldout_eval_rows,
+            seed,
+        )
+
+        def heldout(batch):
+            generator = torch.Generator(device=batch["s"].device).manual_seed(0)
+            return model.loss(batch["a"], batch["s"], generator)[0]
+
+        result = training.fit(
+            "behaviour_cvae",
+            model,
+            lambda batch, generator: model.loss(batch["a"], batch["s"], generator),
+            heldout,
+            data,
+            steps=config.steps,
+            batch_size=config.batch_size,
+            lr=config.lr,
+            weight_decay=0.0,
+            seed=seed,
+            precision="fp32",
+            eval_every=config.eval_every,
+            checkpoint_every=config.checkpoint_every,
+            checkpoint_path=weights.with_suffix(".ckpt.pt"),
+            keep_best="model",
+            progress=progress,
+        )
+        save_torch_atomic(weights, model.state_dict())
+        record = {**result.to_dict(), "config": asdict(config)}
+        write_json_atomic(record_path, record)
+        weights.with_suffix(".ckpt.pt").unlink(missing_ok=True)
+    model.eval().requires_grad_(False)
+    return model, {**record, "weights": str(weights.name)}
+
+
+def plain_rollouts(
+    source: Transitions,
+    generators: Generators,
+    policy: CVAE,
+    *,
+    env_id: str,
+    count: int,
+    seed: int,
+    use_mean: bool,
+) -> tuple[Transitions, np.ndarray]:
+    """One-step model rollouts from `count` random source states: a ~ behaviour CVAE,
+    (s', r) ~ the dynamics ensemble, terminal by the env's own rule on s'; also the source rows
+    the states came from."""
+    rng = np.random.default_rng(derive_seed(seed, "verify-baseline-states"))
+    rows = np.sort(rng.choice(len(source), size=min(count, len(source)), replace=False))
+    device = generators.device
+    sampling = torch.Generator(device=device).manual_seed(derive_seed(seed, "verify-baseline"))
+    states = source.observations[rows]
+    with torch.no_grad():
+        states_norm = generators.normalizer.normalize(torch.as_tensor(states, device=device))
+        actions = policy.sample(states_norm, 1, generator=sampling)[:, 0]
+        next_norm, rewards = generators.dynamics.sample(
+            states_norm, actions, generator=sampling, use_mean=use_mean
+        )
+    next_states = generators.normalizer.denormalize(next_norm.float().cpu().numpy())
+    next_states = next_states.astype(np.float32)
+    terminal = termination_rule(env_id, source.obs_dim, origin=f"source (env {env_id})")
+    rollouts = Transitions(
+        observations=states.astype(np.float32),
+        actions=actions.float().cpu().numpy().astype(np.float32),
+        rewards=rewards.float().cpu().numpy().astype(np.float32),
+        next_observations=next_states,
+        terminals=terminal(next_states),
+        timeouts=np.zeros(len(rows), dtype=np.bool_),
+    )
+    return rollouts, rows
+
+
+def _artifact_generators(
+    artifact_path: Path,
+    manifest: dict[str, Any],
+    source: Transitions,
+    source_sha256: str,
+    root: Path,
+    device: torch.device,
+    show_progress: bool,
+) -> tuple[Generators, dict[str, Any]]:
+    """The generators the artifact was made with (from the cache when present)."""
+    try:
+        config = GeneratorConfig.from_dict(manifest["hyper_parameters"]["generator_config"])
+        seed = int(manifest["seeds"]["generator_training"])
+    except (KeyError, TypeError) as error:
+        raise DataFormatError(
+            artifact_path,
+            "manifest.hyper_parameters.generator_config",
+            "the generator config and seeds the artifact was made with",
+            repr(error),
+        ) from None
+    cache_root = root / "cache" / "generators"
+    cache_dir = cache_dir_for(cache_root, source_sha256, config, seed)
+    cached = all((cache_dir / f"{name}.pt").exists() for name in MODEL_NAMES)
+    if not cached:
+        console.err.print(
+            f"the artifact's generators are not cached under {cache_dir}; training them again "
+            "(this takes as long as `hipode augment` did)"
+        )
+    generators = train_generators(
+        source,
+        source_sha256,
+        config,
+        cache_root=cache_root,
+        seed=seed,
+        device=device,
+        show_progress=show_progress,
+    )
+    stored_hash = (manifest.get("generators") or {}).get("checkpoint_hashes", {}).get("dynamics")
+    details = {
+        "generators_cache": cache_dir.name,
+        "generators_were_cached": cached,
+        "dynamics_sha256": generators.checkpoint_hashes["dynamics"],
+        "dynamics_matches_artifact": stored_hash == generators.checkpoint_hashes["dynamics"],
+        "dynamics_sampling": "ensemble mean"
+        if manifest["hyper_parameters"].get("dynamics_mean")
+        else "random member's Gaussian sample",
+    }
+    return generators, details
+
+
+def verify_artifact(
+    path: str | Path,
+    *,
+    sample: int = 2000,
+    seed: int = 0,
+    tolerance: float = DEFAULT_TOLERANCE,
+    baseline: bool = True,
+    root: Path | None = None,
+    out_dir: Path | None = None,
+    force: bool = False,
+    behaviour: BehaviourCVAEConfig | None = None,
+    device: str | None = None,
+    show_progress: bool = True,
+) -> VerifyReport:
+    """Check a seeded sample of `sample` synthetic transitions (and as many plain model
+    rollouts unless `baseline` is False) against the simulator; write the JSON report and the
+    novelty-vs-authenticity PNG (atomically; existing outputs need `force`)."""
+    if sample < 1:
+        raise VerifySettingError(
+            f"verify setting 'sample': expected a positive integer, found {sample}"
+        )
+    if not (tolerance > 0 and np.isfinite(tolerance)):
+        raise VerifySettingError(
+            f"verify setting 'tolerance': expected a positive number, found {tolerance}"
+        )
+    path = Path(path)
+    json_path, png_path = output_paths(path, out_dir)
+    existing = [str(p) for p in (json_path, png_path) if p.exists()]
+    if existing and not force:
+        raise OverwriteError(f"{', '.join(existing)} already exist(s); pass --force to replace")
+    seconds: dict[str, float] = {}
+    clock = time.perf_counter()
+    root = use_datasets_root(root)
+    artifact = read_artifact(path)
+    manifest = artifact.manifest
+    env_id = manifest.get("env_id")
+    # the id came from a file: refuse anything gymnasium does not implement before building it
+    check_env_id(env_id, origin=path)
+    source_record = manifest.get("source") or {}
+    source, info = load_source(str(source_record.get("id")), root)
+    if info.sha256 != source_record.get("sha256"):
+        raise DataFormatError(
+            path,
+            "source.sha256",
+            f"the content hash of the source it was built from ({source_record.get('id')})",
+            f"{info.sha256} in the local copy, {source_record.get('sha256')} in the manifest",
+        )
+    seconds["load"] = time.perf_counter() - clock
+
+    torch_device = select_device(device)
+    eps = float(
+        (manifest.get("hyper_parameters") or {})
+        .get("generator_config", {})
+        .get("normalizer_eps", GeneratorConfig().normalizer_eps)
+    )
+    normalizer = StateNormalizer.fit(source.observations, eps=eps)
+    source_norm = normalizer.normalize(torch.as_tensor(source.observations, device=torch_device))
+    next_state_std = source.next_observations.astype(np.float64).std(axis=0)
+    reward_std = float(source.rewards.astype(np.float64).std())
+    rng = np.random.default_rng(derive_seed(seed, "verify-sample"))
+    picked = np.sort(rng.choice(len(artifact), size=min(sample, len(artifact)), replace=False))
+    synthetic = Transitions(
+        **{name: array[picked] for name, array in artifact.transitions.arrays().items()}
+    )
+    common = dict(
+        next_state_std=next_state_std,
+        reward_std=reward_std,
+        normalizer=normalizer,
+        source_norm=source_norm,
+        tolerance=tolerance,
+        seed=seed,
+        origin=path,
+    )
+    details: dict[str, Any] = {}
+    with console.progress(disable=not show_progress) as prog:
+        clock = time.perf_counter()
+        hipode_checks = check_transitions(
+            env_id, synthetic, progress=prog, label="simulate HIPODE", **common
+        )
+        hipode_checks = dataclasses.replace(hipode_checks, rows=picked)
+        seconds["simulate_hipode"] = time.perf_counter() - clock
+        baseline_checks = None
+        if baseline:
+            clock = time.perf_counter()
+            generators, details = _artifact_generators(
+                path, manifest, source, info.sha256, root, torch_device, show_progress
+            )
+            policy, record = behaviour_cvae(
+                source,
+                generators.normalizer,
+                behaviour or BehaviourCVAEConfig(),
+                cache_dir=generators.cache_dir,
+                seed=seed,
+                device=torch_device,
+                progress=prog,
+            )
+            details["behaviour_cvae"] = record
+            rollouts, baseline_rows = plain_rollouts(
+                source,
+                generators,
+                policy,
+                env_id=env_id,
+                count=len(synthetic),
+                seed=seed,
+                use_mean=bool(manifest["hyper_parameters"].get("dynamics_mean", False)),
+            )
+            seconds["baseline_models"] = time.perf_counter() - clock
+            clock = time.perf_counter()
+            baseline_checks = check_transitions(
+                env_id, rollouts, progress=prog, label="simulate baseline", **common
+            )
+            baseline_checks = dataclasses.replace(baseline_checks, rows=baseline_rows)
+            seconds["simulate_baseline"] = time.perf_counter() - clock
+    report = VerifyReport(
+        artifact=str(path),
+        artifact_sha256=file_sha256(path),
+        env_id=env_id,
+        source_id=info.id,
+        source_sha256=info.sha256,
+        seed=seed,
+        tolerance=tolerance,
+        hipode=hipode_checks,
+        baseline=baseline_checks,
+        baseline_details=details,
+        seconds=seconds,
+        json_path=str(json_path),
+        png_path=str(png_path),
+    )
+    clock = time.perf_counter()
+    json_path.parent.mkdir(parents=True, exist_ok=True)
+    plot_novelty_vs_error(report, png_path)
+    seconds["write"] = time.perf_counter() - clock
+    seconds["total"] = sum(v for k, v in seconds.items() if k != "total")
+    report.seconds = {name: round(value, 3) for name, value in seconds.items()}
+    _write_json_atomic(json_path, report.to_dict())
+    return report
+
+
+def plot_novelty_vs_error(report: VerifyReport, path: Path) -> None:
+    """Scatter of novelty (x) against next-state error vs the simulator (y, log), HIPODE and the
+    baseline, with the tolerance as a line; written atomically as PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(figsize=(6.4, 4.8), dpi=120)
+    # log scale: errors span decades, and an exact transition would sit at -inf
+    floor = 1e-6
+    series = [("HIPODE", report.hipode, "tab:blue")]
+    if report.baseline is not None:
+        series.append(("plain model rollout", report.baseline, "tab:orange"))
+    for label, checks, color in series:
+        shown = np.isfinite(checks.next_state_error)
+        axes.scatter(
+            checks.novelty[shown],
+            np.maximum(checks.next_state_error[shown], floor),
+            s=6,
+            alpha=0.5,
+            color=color,
+            label=f"{label} (median {np.median(checks.next_state_error):.3g})",
+            edgecolors="none",
+        )
+    axes.axhline(report.tolerance, color="gray", linestyle="--", linewidth=1, label="tolerance")
+    axes.set_yscale("log")
+    axes.set_xlabel("novelty: L2 to nearest source state (z-scored)")
+    axes.set_ylabel("next-state error vs simulator (source stds, mean over dims)")
+    axes.set_title(f"{Path(report.artifact).name} ({report.env_id}): authenticity vs novelty")
+    axes.legend(loc="best", fontsize=8)
+    figure.tight_layout()
+    try:
+        with atomic_path(path) as temp:
+            figure.savefig(temp, format="png")
+    finally:
+        plt.close(figure)
+
+
+def _write_json_atomic(path: Path, data: dict[str, Any]) -> None:
+    write_text_atomic(
+        path, json.dumps(data, indent=2, sort_keys=True, default=_json_default) + "\n"
+    )
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if dataclasses.is_dataclass(value):
+        return asdict(value)
+    return str(value)
