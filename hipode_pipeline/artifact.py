@@ -7,10 +7,7 @@ attribute `manifest`. Only numeric datasets: no pickle, nothing in the file is e
 
 from __future__ import annotations
 
-import hashlib
 import json
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -19,24 +16,36 @@ import h5py
 import numpy as np
 
 from hipode_pipeline.data.transitions import FIELDS, Transitions
-from hipode_pipeline.errors import DataFormatError, DatasetNotFoundError, OverwriteError
+from hipode_pipeline.errors import DatasetNotFoundError, OverwriteError
+from hipode_pipeline.files import atomic_path, file_sha256
 from hipode_pipeline.paths import datasets_root
 from hipode_pipeline.tasks import get_task
+from hipode_pipeline.validation import (  # re-exported: the schema's constants live with its rules
+    DIAGNOSTIC_DTYPES,
+    MANIFEST_ATTR,
+    REQUIRED_DIAGNOSTICS,
+    SCHEMA_NAME,
+    SCHEMA_VERSION,
+    TRANSITION_DTYPES,
+    Findings,
+    check_file,
+    content_checksum,
+)
 
-SCHEMA_NAME = "hipode-synthetic"
-SCHEMA_VERSION = "1.0"
-MANIFEST_ATTR = "manifest"
-# diagnostics every artifact carries, with their dtypes; writers may add more (float32 or int64)
-REQUIRED_DIAGNOSTICS = {"dynamics_error": np.float32, "value": np.float32, "source_index": np.int64}
-DIAGNOSTIC_DTYPES = (np.dtype(np.float32), np.dtype(np.int64))
-TRANSITION_DTYPES = {
-    "observations": np.float32,
-    "actions": np.float32,
-    "rewards": np.float32,
-    "next_observations": np.float32,
-    "terminals": np.bool_,
-    "timeouts": np.bool_,
-}
+__all__ = [
+    "DIAGNOSTIC_DTYPES",
+    "MANIFEST_ATTR",
+    "REQUIRED_DIAGNOSTICS",
+    "SCHEMA_NAME",
+    "SCHEMA_VERSION",
+    "TRANSITION_DTYPES",
+    "Artifact",
+    "content_checksum",
+    "default_artifact_path",
+    "read_artifact",
+    "read_manifest",
+    "write_artifact",
+]
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,27 +72,6 @@ def default_artifact_path(
     return (root or datasets_root()) / "artifacts" / f"{task.name}-{learner}-seed{seed}.hdf5"
 
 
-def content_checksum(arrays: dict[str, np.ndarray]) -> str:
-    """sha256 over each dataset's name, dtype, shape and bytes: transition fields in D4RL order,
-    then diagnostics by name. The manifest is left out (it holds this checksum)."""
-    digest = hashlib.sha256()
-    names = [*FIELDS, *sorted(name for name in arrays if name not in FIELDS)]
-    for name in names:
-        array = np.ascontiguousarray(arrays[name])
-        digest.update(f"{name}:{array.dtype.str}:{array.shape}".encode())
-        digest.update(array.data)
-    return "sha256:" + digest.hexdigest()
-
-
-def file_sha256(path: Path) -> str:
-    """sha256 of the file's bytes (what a user compares after copying it)."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 22), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def write_artifact(
     path: Path,
     transitions: Transitions,
@@ -106,18 +94,10 @@ def write_artifact(
         "schema": {"name": SCHEMA_NAME, "version": SCHEMA_VERSION},
         "checksum": content_checksum(arrays),
     }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(handle)
-    try:
-        with h5py.File(temp_name, "w") as f:
-            for name, array in arrays.items():
-                f.create_dataset(name, data=array)
-            f.attrs[MANIFEST_ATTR] = json.dumps(stored, sort_keys=True, default=_json_default)
-        os.replace(temp_name, path)
-    except BaseException:
-        Path(temp_name).unlink(missing_ok=True)
-        raise
+    with atomic_path(path) as temp, h5py.File(temp, "w") as f:
+        for name, array in arrays.items():
+            f.create_dataset(name, data=array)
+        f.attrs[MANIFEST_ATTR] = json.dumps(stored, sort_keys=True, default=_json_default)
     return stored
 
 
@@ -126,123 +106,22 @@ def read_manifest(path: Path) -> dict[str, Any]:
     path = Path(path)
     if not path.is_file():
         raise DatasetNotFoundError(f"{path}: no such artifact file")
-    try:
-        with h5py.File(path, "r") as f:
-            return _parse_manifest(f, path)
-    except OSError as error:
-        raise DataFormatError(
-            path, "file", "a complete HDF5 file", f"unreadable ({error})"
-        ) from None
+    manifest, _ = check_file(path, Findings(path, strict=True), read_arrays=False)
+    return manifest
 
 
 def read_artifact(path: Path) -> Artifact:
     """Read and verify an artifact: schema name and major version, every dataset's presence,
-    dtype and shape, finiteness, and the content checksum. Any failure is a DataFormatError
-    naming the file, the field and what was expected."""
+    dtype and shape, finiteness, and the content checksum. The first failure is a
+    DataFormatError naming the file, the field and what was expected (`validate_artifact` in
+    hipode_pipeline.validation runs the same rules and lists them all)."""
     path = Path(path)
     if not path.is_file():
         raise DatasetNotFoundError(f"{path}: no such artifact file")
-    try:
-        with h5py.File(path, "r") as f:
-            manifest = _parse_manifest(f, path)
-            arrays = {name: _read_dataset(f, name, path) for name in f.keys()}
-    except OSError as error:
-        # a truncated or overwritten file fails inside HDF5 itself
-        raise DataFormatError(
-            path, "file", "a complete HDF5 file", f"unreadable ({error})"
-        ) from None
-    for name in FIELDS:
-        if name not in arrays:
-            raise DataFormatError(path, name, "a dataset in the file", "nothing (missing)")
-    for name in REQUIRED_DIAGNOSTICS:
-        if name not in arrays:
-            raise DataFormatError(
-                path, name, "a diagnostics dataset in the file", "nothing (missing)"
-            )
-    m, obs_dim = _shape_of(arrays["observations"], path)
-    act_dim = arrays["actions"].shape[1] if arrays["actions"].ndim == 2 else None
-    expected_shapes = {
-        "observations": (m, obs_dim),
-        "actions": (m, act_dim),
-        "rewards": (m,),
-        "next_observations": (m, obs_dim),
-        "terminals": (m,),
-        "timeouts": (m,),
-    }
-    for name, array in arrays.items():
-        expected_dtype = TRANSITION_DTYPES.get(name) or REQUIRED_DIAGNOSTICS.get(name)
-        if expected_dtype is not None and array.dtype != np.dtype(expected_dtype):
-            raise DataFormatError(path, name, f"dtype {np.dtype(expected_dtype)}", array.dtype)
-        if expected_dtype is None and array.dtype not in DIAGNOSTIC_DTYPES:
-            raise DataFormatError(path, name, "a float32 or int64 diagnostics dataset", array.dtype)
-        shape = expected_shapes.get(name, (m,))
-        if array.shape != shape:
-            raise DataFormatError(path, name, f"shape {shape}", array.shape)
-        if array.dtype.kind == "f" and not np.isfinite(array).all():
-            bad = ~np.isfinite(array)
-            first = int(np.argwhere(bad)[0][0])
-            raise DataFormatError(
-                path, name, "finite values", f"{int(bad.sum())} NaN/inf (first at row {first})"
-            )
-    checksum = content_checksum(arrays)
-    if manifest.get("checksum") != checksum:
-        raise DataFormatError(
-            path,
-            "checksum",
-            f"{manifest.get('checksum')} (the manifest's)",
-            f"{checksum}: the content was changed or corrupted",
-        )
+    manifest, arrays = check_file(path, Findings(path, strict=True), read_arrays=True)
     transitions = Transitions(**{name: arrays[name] for name in FIELDS})
     diagnostics = {name: array for name, array in arrays.items() if name not in FIELDS}
     return Artifact(path=path, transitions=transitions, diagnostics=diagnostics, manifest=manifest)
-
-
-def _parse_manifest(f: h5py.File, path: Path) -> dict[str, Any]:
-    raw = f.attrs.get(MANIFEST_ATTR)
-    if raw is None:
-        raise DataFormatError(
-            path, MANIFEST_ATTR, "a JSON manifest attribute on the file's root", "nothing (missing)"
-        )
-    if isinstance(raw, bytes):
-        raw = raw.decode("utf-8", errors="replace")
-    try:
-        manifest = json.loads(raw)
-    except (TypeError, ValueError) as error:
-        raise DataFormatError(
-            path, MANIFEST_ATTR, "a JSON object", f"text that is not JSON ({error})"
-        ) from None
-    if not isinstance(manifest, dict):
-        raise DataFormatError(path, MANIFEST_ATTR, "a JSON object", type(manifest).__name__)
-    schema = manifest.get("schema") if isinstance(manifest.get("schema"), dict) else {}
-    if schema.get("name") != SCHEMA_NAME:
-        raise DataFormatError(
-            path, "manifest.schema.name", f"'{SCHEMA_NAME}'", repr(schema.get("name"))
-        )
-    version = str(schema.get("version", ""))
-    if version.split(".")[0] != SCHEMA_VERSION.split(".")[0]:
-        raise DataFormatError(
-            path,
-            "manifest.schema.version",
-            f"major version {SCHEMA_VERSION.split('.')[0]} (this reader reads {SCHEMA_VERSION}); "
-            "rebuild the file with this version's `hipode augment`",
-            repr(version),
-        )
-    return manifest
-
-
-def _read_dataset(f: h5py.File, name: str, path: Path) -> np.ndarray:
-    node = f[name]
-    if not isinstance(node, h5py.Dataset):
-        raise DataFormatError(path, name, "a dataset", "a group")
-    if node.dtype.kind not in "fiub":
-        raise DataFormatError(path, name, "a numeric or boolean dataset", node.dtype)
-    return node[()]
-
-
-def _shape_of(observations: np.ndarray, path: Path) -> tuple[int, int]:
-    if observations.ndim != 2 or observations.shape[1] == 0:
-        raise DataFormatError(path, "observations", "a 2-D array (M, obs_dim)", observations.shape)
-    return observations.shape
 
 
 def _checked_diagnostics(
@@ -272,3 +151,57 @@ def _json_default(value: Any) -> Any:
     if isinstance(value, Path):
         return str(value)
     raise TypeError(f"manifest value of type {type(value).__name__} is not JSON-able")
+
+
+# manifest entries `hipode inspect` shows first, in this order
+HIGHLIGHT_KEYS = ("schema", "task", "env_id", "created_utc", "checksum")
+
+
+def inspect_artifact(path: Path) -> dict[str, Any]:
+    """Read and verify an artifact, then summarize it: manifest highlights (schema, task, env,
+    source, hyper-parameters, seeds, versions, counts) and per-dataset statistics."""
+    artifact = read_artifact(path)
+    manifest = artifact.manifest
+    source = manifest.get("source") if isinstance(manifest.get("source"), dict) else {}
+    highlights: dict[str, Any] = {key: manifest.get(key) for key in HIGHLIGHT_KEYS}
+    highlights["schema"] = "{name} {version}".format(**manifest["schema"])
+    highlights.update(
+        {
+            "rows": len(artifact),
+            "source.id": source.get("id"),
+            "source.sha256": source.get("sha256"),
+            "source.N": source.get("n"),
+        }
+    )
+    for group in ("hyper_parameters", "seeds", "versions", "counts"):
+        values = manifest.get(group)
+        if isinstance(values, dict):
+            # nested configs are in --json; the table keeps scalars
+            highlights.update(
+                {f"{group}.{k}": v for k, v in values.items() if not isinstance(v, dict | list)}
+            )
+    arrays = {**artifact.transitions.arrays(), **artifact.diagnostics}
+    statistics = {name: _statistics(array) for name, array in arrays.items()}
+    return {
+        "path": str(artifact.path),
+        "file_sha256": file_sha256(artifact.path),
+        "manifest": highlights,
+        "statistics": statistics,
+        "fractions": {
+            "terminals": float(artifact.transitions.terminals.mean()) if len(artifact) else 0.0,
+            "timeouts": float(artifact.transitions.timeouts.mean()) if len(artifact) else 0.0,
+        },
+    }
+
+
+def _statistics(array: np.ndarray) -> dict[str, Any]:
+    values = array.astype(np.float64)
+    empty = values.size == 0
+    return {
+        "shape": list(array.shape),
+        "dtype": array.dtype.name,
+        "mean": None if empty else float(values.mean()),
+        "std": None if empty else float(values.std()),
+        "min": None if empty else float(values.min()),
+        "max": None if empty else float(values.max()),
+    }

@@ -28,7 +28,6 @@ from hipode_pipeline import console
 from hipode_pipeline.artifact import (
     SCHEMA_VERSION,
     default_artifact_path,
-    file_sha256,
     read_artifact,
     write_artifact,
 )
@@ -42,7 +41,7 @@ from hipode_pipeline.errors import (
     HipodeError,
     OverwriteError,
 )
-from hipode_pipeline.files import write_json_atomic
+from hipode_pipeline.files import file_sha256, write_json_atomic
 from hipode_pipeline.models.generators import GeneratorConfig, Generators, train_generators
 from hipode_pipeline.paths import use_datasets_root
 from hipode_pipeline.tasks import Task, get_task

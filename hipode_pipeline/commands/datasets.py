@@ -16,7 +16,7 @@ datasets_app = typer.Typer(
     help="Local source datasets and synthetic artifacts.", no_args_is_help=True
 )
 
-LIST_COLUMNS = ("id", "kind", "env", "N", "episodes", "refs", "size", "note")
+LIST_COLUMNS = ("id", "kind", "task", "env", "N", "episodes", "refs", "schema", "size", "note")
 # Widest id kept unfolded in the table; longer ones wrap
 ID_WIDTH = 48
 
@@ -40,10 +40,12 @@ def list_command(root: RootOption = None, json_output: JsonFlag = False) -> None
         [
             e.id,
             e.kind,
+            e.task,
             e.env_id,
             e.transitions,
             e.episodes,
             e.ref_scores_from or "none",
+            e.schema_version,
             _size_text(e.size_bytes),
             # the table shows a note's gist; --json has the detail
             e.note.split(" (")[0] if e.note else None,

@@ -41,6 +41,8 @@ class LocalDataset:
     size_bytes: int  # bytes on disk (all files of a Minari dataset)
     path: str  # folder or file, relative to the root
     note: str | None = None  # why some fields are unknown (unreadable metadata, ...)
+    task: str | None = None  # artifacts: the task named in the manifest
+    schema_version: str | None = None  # artifacts: the manifest's schema version
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -90,6 +92,7 @@ def _hdf5_files(root: Path) -> list[Path]:
             for d in subdirs
             if not _skipped(root, here / d) and not (here / d / "data" / METADATA_FILE).is_file()
         )
+        # by suffix only: sidecars (*.summary.json, *.verify.json, *.sha256) are never listed
         files += [
             here / name for name in sorted(names) if Path(name).suffix.lower() in HDF5_SUFFIXES
         ]
@@ -141,6 +144,10 @@ def _describe_minari(root: Path, folder: Path) -> LocalDataset:
 def _describe_file(root: Path, file: Path, kind: str) -> LocalDataset:
     relative = file.relative_to(root).as_posix()
     size = file.stat().st_size
+    if kind == "artifact":
+        described = _describe_artifact(file, relative, size)
+        if described is not None:
+            return described
     try:
         env_id, rows, has_refs = _file_header(file)
         note = None
@@ -158,6 +165,40 @@ def _describe_file(root: Path, file: Path, kind: str) -> LocalDataset:
         size_bytes=size,
         path=relative,
         note=note,
+    )
+
+
+def _describe_artifact(file: Path, relative: str, size: int) -> LocalDataset | None:
+    """From the manifest and the observations' shape only (no arrays are read); None when the
+    manifest is not an artifact's, so the entry is described like any other HDF5 file."""
+    from hipode_pipeline.artifact import read_manifest
+
+    try:
+        manifest = read_manifest(file)
+        with h5py.File(file, "r") as f:
+            observations = f.get("observations")
+            rows = int(observations.shape[0]) if isinstance(observations, h5py.Dataset) else None
+    except (OSError, DataFormatError):
+        return None
+    task_name = manifest.get("task") if isinstance(manifest.get("task"), str) else None
+    env_id = manifest.get("env_id") if isinstance(manifest.get("env_id"), str) else None
+    task = task_for_env(env_id) if env_id else task_from_file_name(file)
+    has_refs = (
+        float_or_none(manifest.get("ref_min_score")) is not None
+        and float_or_none(manifest.get("ref_max_score")) is not None
+    )
+    return LocalDataset(
+        id=relative,
+        kind="artifact",
+        env_id=env_id or (task.env_id if task else None),
+        transitions=rows,
+        episodes=None,
+        has_ref_scores=has_refs,
+        ref_scores_from="dataset" if has_refs else ("registry" if task else None),
+        size_bytes=size,
+        path=relative,
+        task=task_name,
+        schema_version=(manifest.get("schema") or {}).get("version"),
     )
 
 

@@ -1,0 +1,128 @@
+"""Moving artifacts between machines: export with a sha256 sidecar, import into the dataset root.
+
+Whatever is installed is what was checked: import copies into a temporary file beside the
+target, validates that copy (schema, content checksum, and the sidecar's file hash when one
+came along) and only then renames it into place. A file that fails is never left behind.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+from typing import Any
+
+from hipode_pipeline.data.catalog import ARTIFACTS_DIR
+from hipode_pipeline.data.load import HDF5_SUFFIXES
+from hipode_pipeline.errors import DataFormatError, DatasetNotFoundError, OverwriteError
+from hipode_pipeline.files import atomic_path, file_sha256, write_text_atomic
+from hipode_pipeline.paths import datasets_root
+from hipode_pipeline.validation import ValidationReport, validate_artifact
+
+SIDECAR_SUFFIX = ".sha256"
+
+
+def sidecar_path(path: Path) -> Path:
+    """`<file>.sha256`, in `sha256sum` format: `<hex>  <file name>`."""
+    return path.with_name(path.name + SIDECAR_SUFFIX)
+
+
+def require_valid(path: Path) -> ValidationReport:
+    """Validate `path`; any error becomes a DataFormatError naming the first broken field and
+    how many there are in all."""
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetNotFoundError(f"{path}: no such artifact file")
+    report = validate_artifact(path)
+    if not report.valid:
+        first, count = report.errors[0], len(report.errors)
+        more = (
+            f" ({count - 1} more violation(s); `hipode validate` lists them)" if count > 1 else ""
+        )
+        raise DataFormatError(path, first.field, first.expected, f"{first.found}{more}")
+    return report
+
+
+def export_artifact(artifact: Path, out: Path, *, force: bool = False) -> dict[str, Any]:
+    """Copy a valid artifact to `out` (atomically) and write `out.sha256` beside it."""
+    artifact, out = Path(artifact), Path(out)
+    _refuse_existing([out, sidecar_path(out)], force)
+    require_valid(artifact)
+    digest = _copy_checked(artifact, out, expected_sha256=file_sha256(artifact))
+    write_text_atomic(sidecar_path(out), f"{digest}  {out.name}\n")
+    return {"out": str(out), "sha256": digest, "sidecar": str(sidecar_path(out))}
+
+
+def export_d4rl(
+    artifact: Path,
+    source_spec: str,
+    out: Path,
+    *,
+    root: Path | None = None,
+    force: bool = False,
+) -> dict[str, Any]:
+    """Source ⊕ synthetic as one D4RL-format HDF5 file (hipode.merge's layout, with an
+    is_synthetic mask) for CORL-style scripts, plus `out.sha256`."""
+    from hipode_pipeline.merge import merge_files
+
+    artifact, out = Path(artifact), Path(out)
+    _refuse_existing([out, sidecar_path(out)], force)
+    require_valid(artifact)
+    summary = merge_files(source_spec, artifact, out, root=root, force=force)
+    digest = file_sha256(out)
+    write_text_atomic(sidecar_path(out), f"{digest}  {out.name}\n")
+    return {**summary, "sha256": digest, "sidecar": str(sidecar_path(out))}
+
+
+def import_artifact(path: Path, *, root: Path | None = None, force: bool = False) -> dict[str, Any]:
+    """Validate an artifact (schema, checksum, and `path.sha256` if present) and copy it into
+    `<root>/artifacts/`; an existing file there is replaced only with `force`."""
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetNotFoundError(f"{path}: no such artifact file")
+    if path.suffix.lower() not in HDF5_SUFFIXES:
+        raise DataFormatError(path, "file name", f"a name ending in {' or '.join(HDF5_SUFFIXES)}")
+    target = (root or datasets_root()) / ARTIFACTS_DIR / path.name
+    _refuse_existing([target], force)
+    expected = _sidecar_digest(path)
+    with atomic_path(target) as temp:
+        shutil.copyfile(path, temp)
+        digest = file_sha256(temp)
+        if expected is not None and digest != expected:
+            raise DataFormatError(
+                path, "file sha256", f"{expected} (from {sidecar_path(path).name})", digest
+            )
+        # the copy is what gets installed, so the copy is what is validated
+        report = require_valid(temp)
+    return {
+        "imported": str(target),
+        "sha256": digest,
+        "sidecar_checked": expected is not None,
+        "schema": report.schema,
+        "warnings": [v.to_dict() for v in report.violations],
+    }
+
+
+def _sidecar_digest(path: Path) -> str | None:
+    sidecar = sidecar_path(path)
+    if not sidecar.is_file():
+        return None
+    words = sidecar.read_text(errors="replace").split()
+    digest = words[0].lower() if words else ""
+    if len(digest) != 64 or any(c not in "0123456789abcdef" for c in digest):
+        raise DataFormatError(sidecar, "sha256", "64 hex digits, then the file name", repr(digest))
+    return digest
+
+
+def _copy_checked(source: Path, out: Path, *, expected_sha256: str) -> str:
+    with atomic_path(out) as temp:
+        shutil.copyfile(source, temp)
+        digest = file_sha256(temp)
+        if digest != expected_sha256:
+            raise DataFormatError(source, "file sha256", expected_sha256, f"{digest} after copying")
+    return digest
+
+
+def _refuse_existing(paths: list[Path], force: bool) -> None:
+    for path in paths:
+        if path.exists() and not force:
+            raise OverwriteError(f"{path} already exists; pass --force to replace it")
