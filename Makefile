@@ -41,6 +41,7 @@ bench: $(STAMP)
 	$(BIN)/python bench/augment.py
 	$(BIN)/python bench/models_precision.py --write
 	$(BIN)/python bench/learners.py
+	$(BIN)/python bench/verify.py
 
 lint: $(STAMP)
 	$(BIN)/ruff check hipode_pipeline tests bench
