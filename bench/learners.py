@@ -187,9 +187,7 @@ def quality_run(
                 file=sys.stderr,
                 flush=True,
             )
-    ends = real.episode_ends()
-    starts = np.concatenate([[0], ends[:-1] + 1])
-    episode_returns = np.add.reduceat(real.rewards.astype(np.float64), starts)
+    episode_returns = real.episode_returns()
     # the collector records the behaviour policy's own evaluation under metadata["hipode"]
     recorded = (info.metadata.get("hipode") or {}).get("behaviour_policy") or {}
     behaviour = next(iter(recorded.values()), None) if isinstance(recorded, dict) else None

@@ -11,8 +11,6 @@ import re
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from hipode_pipeline.data.d4rl_source import DEFAULT_MAX_EPISODE_STEPS, load_d4rl_hdf5
 from hipode_pipeline.data.minari_source import (
     dataset_dir,
@@ -143,8 +141,7 @@ def task_from_file_name(path: str | Path) -> Task | None:
 def describe_source(spec: str, root: Path | None = None) -> dict[str, Any]:
     """Load a source and summarize it: size, dims, env, refs, checksum, episodes, flags, returns."""
     transitions, info = load_source(spec, root)
-    ends = transitions.terminals | transitions.timeouts
-    episode_returns = _episode_returns(transitions.rewards, ends)
+    episode_returns = transitions.episode_returns()
     return {
         "id": info.id,
         "format": info.format,
@@ -162,12 +159,6 @@ def describe_source(spec: str, root: Path | None = None) -> dict[str, Any]:
         "sha256": info.sha256,
         "notes": info.metadata.get("notes", []),
     }
-
-
-def _episode_returns(rewards: np.ndarray, ends: np.ndarray) -> np.ndarray:
-    """Sum of rewards per episode (a trailing unfinished episode counts as one)."""
-    episode = np.concatenate(([0], np.cumsum(ends)[:-1]))
-    return np.bincount(episode, weights=rewards.astype(np.float64))
 
 
 def _find_file(spec: str, root: Path) -> Path:

@@ -55,6 +55,12 @@ class Transitions:
         """Indices of transitions that end an episode (terminal or timeout)."""
         return np.flatnonzero(self.terminals | self.timeouts)
 
+    def episode_returns(self) -> np.ndarray:
+        """Sum of rewards per episode, in order (float64); a trailing unfinished one counts."""
+        ends = self.terminals | self.timeouts
+        episode = np.concatenate(([0], np.cumsum(ends)[:-1]))
+        return np.bincount(episode, weights=self.rewards.astype(np.float64))
+
     @classmethod
     def concatenate(cls, parts: list[Transitions]) -> Transitions:
         return cls(**{name: np.concatenate([getattr(p, name) for p in parts]) for name in FIELDS})

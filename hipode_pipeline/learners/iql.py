@@ -12,7 +12,6 @@ from __future__ import annotations
 import copy
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 from torch import nn
 from torch.optim.lr_scheduler import CosineAnnealingLR
@@ -50,15 +49,6 @@ def expectile_loss(diff: torch.Tensor, expectile: float) -> torch.Tensor:
     """Asymmetric L2: weight `expectile` above zero, 1 - expectile below."""
     weight = torch.where(diff < 0, 1.0 - expectile, expectile)
     return (weight * diff.square()).mean()
-
-
-def episode_return_range(real: Transitions) -> tuple[float, float]:
-    """Min and max return over the real data's episodes (a trailing partial episode counts too)."""
-    ends = real.episode_ends()
-    if len(ends) == 0 or ends[-1] != len(real) - 1:
-        ends = np.append(ends, len(real) - 1)
-    totals = np.add.reduceat(real.rewards.astype(np.float64), np.concatenate([[0], ends[:-1] + 1]))
-    return float(totals.min()), float(totals.max())
 
 
 class IQL(Learner):
@@ -108,7 +98,8 @@ class IQL(Learner):
     def fit_statistics(self, real: Transitions) -> None:
         super().fit_statistics(real)
         if self.config.normalize_reward:
-            low, high = episode_return_range(real)
+            totals = real.episode_returns()
+            low, high = float(totals.min()), float(totals.max())
             self.reward_scale = 1000.0 / max(high - low, 1e-6)
 
     def _extra_state(self):
