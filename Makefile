@@ -42,6 +42,7 @@ bench: $(STAMP)
 	$(BIN)/python bench/models_precision.py --write
 	$(BIN)/python bench/learners.py
 	$(BIN)/python bench/verify.py
+	$(BIN)/python bench/artifact_io.py
 
 lint: $(STAMP)
 	$(BIN)/ruff check hipode_pipeline tests bench
