@@ -1,0 +1,125 @@
+"""bench/quality.py's machinery on tiny data: both arms on the same seed and budget, the
+artifact built when missing, the report files, resume/skip, and clear user errors."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+from test_merge import write_source
+from typer.testing import CliRunner
+
+from hipode_pipeline.artifact import read_manifest
+from hipode_pipeline.errors import HipodeError
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
+import quality  # noqa: E402
+
+TINY = ["--tasks", "hopper-m-r", "--seeds", "0", "--eval-every", "10", "--eval-episodes", "2"]
+
+
+def invoke(tmp_path, source, *extra):
+    args = [*TINY, "--source", str(source), "--profile", "quick", "--engine", "local"]
+    args += ["--out", str(tmp_path / "out"), "--results", str(tmp_path / "results"), "--json"]
+    return CliRunner().invoke(quality.app, [*args, *extra])
+
+
+def test_quality_sweep_runs_both_arms_reports_and_resumes(tmp_path, dataset_root):
+    source = write_source(tmp_path / "source.hdf5", n_episodes=8)
+    first = invoke(tmp_path, source, "--steps", "20", "--lam", "1", "--union")
+    assert first.exit_code == 0, first.output
+    report = json.loads(first.stdout)
+    runs = {r["arm"]: r for r in report["runs"]}
+    assert set(runs) == {"eta0", "hipode", "lam1", "mixing-union"}
+    assert all(r["status"] == "trained" for r in runs.values())
+    # the ablation arm got its own artifact, built with its λ
+    ablation = read_manifest(tmp_path / "out" / "hopper-m-r" / "lam1" / "artifact.hdf5")
+    assert ablation["hyper_parameters"]["lam"] == 1.0
+    union_config = json.loads((Path(runs["mixing-union"]["run_dir"]) / "config.json").read_text())
+    assert union_config["mixing"] == "union" and union_config["eta"] == 0.5
+    assert (
+        [p[0] for p in runs["eta0"]["curve"]] == [p[0] for p in runs["hipode"]["curve"]] == [10, 20]
+    )
+    assert runs["eta0"]["eta"] == 0.0 and runs["hipode"]["eta"] == 0.5  # Table 6
+    # the missing artifact was built through stage one under the dataset root
+    assert (dataset_root / "artifacts" / "hopper-m-r-td3bc-seed0.hdf5").is_file()
+    difference = report["summary"]["hopper-m-r"]["hipode"]["difference"]["eta0"]
+    assert difference["per_seed"] == [runs["hipode"]["final_score"] - runs["eta0"]["final_score"]]
+    results = tmp_path / "results"
+    assert (results / "quality.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert json.loads((results / "quality.json").read_text())["runs"] == report["runs"]
+    assert "| hopper-m-r | hipode |" in (results / "quality.md").read_text()
+
+    again = json.loads(invoke(tmp_path, source, "--steps", "20").stdout)
+    assert [r["status"] for r in again["runs"]] == ["finished earlier"] * 2
+    assert [r["final_score"] for r in again["runs"]] == [
+        runs[a]["final_score"] for a in ("eta0", "hipode")
+    ]
+
+    longer = json.loads(invoke(tmp_path, source, "--steps", "30").stdout)
+    assert [r["status"] for r in longer["runs"]] == ["resumed from step 20"] * 2
+    assert [p[0] for p in longer["runs"][0]["curve"]] == [10, 20, 30]
+    hipode = next(r for r in longer["runs"] if r["arm"] == "hipode")
+    window = longer["summary"]["hopper-m-r"]["hipode"]["window_scores"]
+    assert window == [pytest.approx(sum(p[1] for p in hipode["curve"]) / 3)]  # last 3 evals
+    hipode_summary = longer["summary"]["hopper-m-r"]["hipode"]
+    assert hipode_summary["curve_means"] == window  # three evaluations: all of them are the last 3
+
+    # --report-only trains nothing: finished runs are read back, a budget none reached fails
+    read = json.loads(invoke(tmp_path, source, "--steps", "30", "--report-only").stdout)
+    assert [r["final_score"] for r in read["runs"]] == [r["final_score"] for r in longer["runs"]]
+    assert read["budget"]["report_only"] is True
+    unreached = invoke(tmp_path, source, "--steps", "40", "--report-only")
+    assert unreached.exit_code == 2 and "no finished runs" in unreached.output
+
+    # a finished run with other settings is refused, not reported as if it matched
+    other = invoke(tmp_path, source, "--steps", "20", "--eval-episodes", "3")
+    assert other.exit_code == 2 and "other settings" in other.output
+
+
+def test_ablation_arms_and_budget_checks():
+    config = quality.QualityConfig(
+        alphas=[-1, 8], uniform=True, lams=[0.2, 1.0], penalties=["l2"], union=True
+    )
+    arms = quality.arms_for(config)
+    assert [a.name for a in arms] == [
+        "eta0",
+        "hipode",
+        "alpha-1",
+        "alpha8",
+        "uniform",
+        "lam0.2",
+        "lam1",
+        "penalty-l2",
+        "mixing-union",
+    ]
+    assert arms[-2].augment == {"penalty": "l2"} and arms[-1].mixing == "union"
+    assert arms[4].augment == {"candidates": "uniform"} and arms[0].data == "source"
+    with pytest.raises(HipodeError, match="no repeats"):
+        quality.arms_for(quality.QualityConfig(alphas=[1, 1]))
+    with pytest.raises(HipodeError, match="divisor"):
+        quality.resolve_budget(quality.QualityConfig(steps=100, eval_every=30))
+    with pytest.raises(HipodeError, match="--seeds"):
+        quality.parse_list("0,x", int, "--seeds")
+
+
+def test_paired_difference_pairs_seeds():
+    runs = [
+        {"arm": "eta0", "seed": 0, "final_score": 10.0},
+        {"arm": "eta0", "seed": 1, "final_score": 20.0},
+        {"arm": "eta0", "seed": 2, "final_score": 30.0},
+        {"arm": "hipode", "seed": 0, "final_score": 12.0},
+        {"arm": "hipode", "seed": 1, "final_score": 24.0},
+    ]
+    diff = quality.paired_difference(runs, "hipode", "eta0")
+    assert diff["seeds"] == [0, 1] and diff["per_seed"] == [2.0, 4.0]  # seed 2 has no pair
+    assert diff["mean"] == pytest.approx(3.0) and diff["sem"] == pytest.approx(1.0)
+
+
+def test_ray_engine_without_ray_names_the_install(monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray raises ImportError
+    spec = quality.RunSpec("hopper-m-r", "eta0", "source", 0.0, 0, 10, 10, 1, "out", "root")
+    with pytest.raises(HipodeError, match=r"pip install 'hipode-pipeline\[ray\]'"):
+        next(quality.run_ray([spec], None, 1))
