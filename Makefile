@@ -9,7 +9,7 @@ ARGS ?=
 # Torch's worker threads spin on a busy 2-core machine; passive waiting keeps them polite.
 export OMP_WAIT_POLICY ?= PASSIVE
 
-.PHONY: setup test collect augment train datasets bench lint clean-venv
+.PHONY: setup test collect augment train datasets bench quality lint clean-venv
 
 setup: $(STAMP)
 
@@ -43,6 +43,10 @@ bench: $(STAMP)
 	$(BIN)/python bench/learners.py
 	$(BIN)/python bench/verify.py
 	$(BIN)/python bench/artifact_io.py
+
+# the quality sweep (hours on a CPU; resumable): make quality ARGS="--tasks hopper-m-r --steps 100000"
+quality: $(STAMP)
+	$(BIN)/python bench/quality.py $(ARGS)
 
 lint: $(STAMP)
 	$(BIN)/ruff check hipode_pipeline tests bench
