@@ -7,10 +7,9 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
-import gymnasium as gym
 import numpy as np
 
-from hipode_pipeline.errors import HipodeError
+from hipode_pipeline.simulator import make_env_safely
 
 Policy = Callable[[np.ndarray], np.ndarray]
 
@@ -50,21 +49,6 @@ def evaluation_seeds(seed: int, episodes: int) -> list[int]:
     return [seed * 1000 + i for i in range(episodes)]
 
 
-def make_env(env_id: str) -> gym.Env:
-    """A registered gymnasium env; ids naming a module to import are refused (ids are data)."""
-    if ":" in env_id:
-        raise HipodeError(
-            f"env id '{env_id}': expected a registered gymnasium id such as Hopper-v5, "
-            "not a module path"
-        )
-    try:
-        return gym.make(env_id)
-    except gym.error.Error as error:
-        raise HipodeError(
-            f"env id '{env_id}': expected a gymnasium env installed here ({error})"
-        ) from None
-
-
 def evaluate_policy(
     policy: Policy,
     env_id: str,
@@ -77,7 +61,7 @@ def evaluate_policy(
 ) -> EvalResult:
     """Run `episodes` deterministic episodes side by side; `policy` maps (k, ds) -> (k, da)."""
     seeds = evaluation_seeds(seed, episodes)
-    envs = [make_env(env_id) for _ in range(episodes)]
+    envs = [make_env_safely(env_id) for _ in range(episodes)]
     try:
         observations = np.stack(
             [env.reset(seed=s)[0] for env, s in zip(envs, seeds, strict=True)]

@@ -14,6 +14,7 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 
+from hipode_pipeline.envs import env_family
 from hipode_pipeline.errors import DataFormatError, HipodeError
 
 # only environments implemented by gymnasium itself are ever constructed
@@ -28,11 +29,6 @@ VELOCITY_DIMS = {"Hopper": 6, "Walker2d": 9, "HalfCheetah": 9}
 
 class UnsafeEnvError(HipodeError):
     """An environment id that is unknown or would run code from outside gymnasium."""
-
-
-def env_family(env_id: str) -> str:
-    """'Hopper-v5' -> 'Hopper'."""
-    return env_id.split("-v")[0]
 
 
 def check_env_id(env_id: object, origin: str | Path | None = None) -> gym.envs.registration.EnvSpec:

@@ -59,5 +59,5 @@ def test_normalized_score_endpoints():
 
 
 def test_module_paths_as_env_ids_are_refused():
-    with pytest.raises(HipodeError, match="registered gymnasium id"):
+    with pytest.raises(HipodeError, match="module path"):
         evaluate_policy(fixed_policy, "os:system", episodes=1)

@@ -25,6 +25,7 @@ from torch import nn
 
 from hipode_pipeline.errors import DataFormatError
 from hipode_pipeline.files import load_torch, save_torch_atomic
+from hipode_pipeline.simulator import make_env_safely
 
 STATE_SPEC = mujoco.mjtState.mjSTATE_INTEGRATION  # physics state incl. solver warm-start
 
@@ -230,7 +231,7 @@ def load_policy(path: Path) -> tuple[GaussianPolicy, dict[str, Any]]:
 
 def make_env(env_id: str) -> tuple[gym.Env, int]:
     """The bare MuJoCo env and its time limit (applied by us, so it can be checkpointed)."""
-    env = gym.make(env_id)
+    env = make_env_safely(env_id)
     return env.unwrapped, int(env.spec.max_episode_steps)
 
 
