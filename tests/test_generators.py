@@ -14,6 +14,7 @@ from hipode_pipeline.errors import DataFormatError
 from hipode_pipeline.files import file_sha256
 from hipode_pipeline.models import training
 from hipode_pipeline.models.generators import (
+    FIELD_OWNERS,
     MODEL_NAMES,
     GeneratorConfig,
     GeneratorConfigError,
@@ -202,3 +203,34 @@ def test_damaged_weights_file_is_reported(transitions, tmp_path):
     path.write_bytes(b"not a weights file")
     with pytest.raises(DataFormatError, match="value.pt"):
         train_generators(transitions, sha, config, cache_root=tmp_path, seed=0, show_progress=False)
+
+
+def test_field_owners_name_real_fields_and_models():
+    fields = set(GeneratorConfig().to_dict())
+    assert set(FIELD_OWNERS) <= fields
+    assert all(set(owners) <= set(MODEL_NAMES) for owners in FIELD_OWNERS.values())
+    config = tiny_config()
+    changed = tiny_config(alpha=config.alpha + 1.0)
+    assert changed.model_key("value") != config.model_key("value")
+    assert all(changed.model_key(m) == config.model_key(m) for m in MODEL_NAMES if m != "value")
+
+
+def test_an_alpha_change_retrains_only_the_value_net_and_matches_training_from_scratch(
+    transitions, tmp_path
+):
+    sha = transitions.sha256()
+    shared = tmp_path / "shared"
+    train_generators(
+        transitions, sha, tiny_config(), cache_root=shared, seed=0, show_progress=False
+    )
+    ablation = tiny_config(alpha=4.0)
+    reused = train_generators(
+        transitions, sha, ablation, cache_root=shared, seed=0, show_progress=False
+    )
+    scratch = train_generators(
+        transitions, sha, ablation, cache_root=tmp_path / "scratch", seed=0, show_progress=False
+    )
+    for name in MODEL_NAMES:
+        assert ("reused_from" in reused.training_report[name]) == (name != "value"), name
+    # same settings and per-model seeds give the same weights, reused or trained afresh
+    assert reused.checkpoint_hashes == scratch.checkpoint_hashes

@@ -20,7 +20,12 @@ from hipode_pipeline.data.normalizer import StateNormalizer
 from hipode_pipeline.data.transitions import Transitions
 from hipode_pipeline.device import select_device
 from hipode_pipeline.errors import DataFormatError, HipodeError
-from hipode_pipeline.files import file_sha256, save_torch_atomic, write_json_atomic
+from hipode_pipeline.files import (
+    file_sha256,
+    save_torch_atomic,
+    write_bytes_atomic,
+    write_json_atomic,
+)
 from hipode_pipeline.models import training
 from hipode_pipeline.models.cvae import CVAE
 from hipode_pipeline.models.dynamics import LOSS_FORMS, DynamicsEnsemble
@@ -28,6 +33,47 @@ from hipode_pipeline.models.value import PENALTY_FORMS, ValueEstimator
 
 MODEL_NAMES = ("state_transition", "value", "inverse_action", "inverse_reward", "dynamics")
 PROFILES = ("full", "quick")
+CVAE_MODELS = ("state_transition", "inverse_action", "inverse_reward")
+# fields that only some models read; any field not listed here is in every model's cache key
+FIELD_OWNERS: dict[str, tuple[str, ...]] = {
+    **{f: CVAE_MODELS for f in ("cvae_hidden", "latent_per_state_dim", "cvae_kl_weight")},
+    **{f: CVAE_MODELS for f in ("cvae_log_std_min", "cvae_log_std_max", "latent_clip")},
+    **{f: CVAE_MODELS for f in ("cvae_lr", "cvae_batch_size", "cvae_keep_best", "cvae_precision")},
+    "state_transition_steps": ("state_transition",),
+    "inverse_action_steps": ("inverse_action",),
+    "inverse_reward_steps": ("inverse_reward",),
+    **{
+        f: ("value",)
+        for f in (
+            "value_hidden",
+            "value_gamma",
+            "value_tau",
+            "value_target_every",
+            "value_lr",
+            "value_batch_size",
+            "value_steps",
+            "value_precision",
+            "penalty",
+            "alpha",
+            "sigma",
+        )
+    },
+    **{
+        f: ("dynamics",)
+        for f in (
+            "dynamics_members",
+            "dynamics_hidden",
+            "dynamics_spectral_norm",
+            "dynamics_loss",
+            "dynamics_bound_loss_weight",
+            "dynamics_lr",
+            "dynamics_weight_decay",
+            "dynamics_batch_size",
+            "dynamics_steps",
+            "dynamics_precision",
+        )
+    },
+}
 
 
 class GeneratorConfigError(HipodeError):
@@ -156,6 +202,16 @@ class GeneratorConfig:
     def hash(self) -> str:
         """sha256 over the sorted JSON of every field: the cache key of trained generators."""
         return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()
+
+    def model_key(self, name: str) -> str:
+        """sha256 over the fields model `name` depends on: every field except those that only
+        other models use (FIELD_OWNERS), so an alpha ablation can reuse the four other models."""
+        relevant = {
+            field: value
+            for field, value in self.to_dict().items()
+            if name in FIELD_OWNERS.get(field, MODEL_NAMES)
+        }
+        return hashlib.sha256(json.dumps(relevant, sort_keys=True).encode()).hexdigest()
 
 
 @dataclass(eq=False)
@@ -372,6 +428,8 @@ def train_generators(
     with progress_display(disable=not show_progress) as prog:
         for name in MODEL_NAMES:
             weights_path, record_path = cache_dir / f"{name}.pt", cache_dir / f"{name}.json"
+            if not weights_path.exists():
+                _adopt_from_sibling(cache_dir, name, config, weights_path, record_path)
             if weights_path.exists() and record_path.exists():
                 _load_weights(models[name], weights_path)
                 record = json.loads(record_path.read_text())
@@ -411,6 +469,31 @@ def train_generators(
         training_report=report,
         **models,
     )
+
+
+def _adopt_from_sibling(
+    cache_dir: Path, name: str, config: GeneratorConfig, weights_path: Path, record_path: Path
+) -> None:
+    """Copy model `name` from another config's cache of the same source and seed when that
+    config trained it with identical settings (GeneratorConfig.model_key): same inputs, same
+    per-model seeds, so the same weights."""
+    source_prefix, seed_suffix = cache_dir.name.split("-")[0], cache_dir.name.rsplit("-", 1)[1]
+    key = config.model_key(name)
+    for sibling in sorted(cache_dir.parent.glob(f"{source_prefix}-*-{seed_suffix}")):
+        weights, record = sibling / f"{name}.pt", sibling / f"{name}.json"
+        if sibling == cache_dir or not (weights.exists() and record.exists()):
+            continue
+        try:
+            other = GeneratorConfig.from_dict(
+                json.loads((sibling / "config.json").read_text())["config"]
+            )
+        except (OSError, ValueError, KeyError, TypeError, HipodeError):
+            continue  # an unreadable or older cache entry is simply not reused
+        if other.model_key(name) == key:
+            write_bytes_atomic(weights_path, weights.read_bytes())
+            data = {**json.loads(record.read_text()), "reused_from": sibling.name}
+            write_json_atomic(record_path, data)
+            return
 
 
 def _load_weights(model: nn.Module, path: Path) -> None:
