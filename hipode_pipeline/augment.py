@@ -11,12 +11,9 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import platform
-import subprocess
 import time
 from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -45,12 +42,12 @@ from hipode_pipeline.files import file_sha256, write_json_atomic
 from hipode_pipeline.models.generators import GeneratorConfig, Generators, train_generators
 from hipode_pipeline.paths import use_datasets_root
 from hipode_pipeline.tasks import Task, get_task
+from hipode_pipeline.versions import package_versions
 
 SELECTIONS = ("batch", "global")
 CANDIDATE_SOURCES = ("model", "uniform")
 PROFILES = ("full", "quick")
 COUNTED = ("source_states_drawn", "next_states_sampled", "nonfinite_dropped", "kept")
-VERSIONED_PACKAGES = ("torch", "numpy", "h5py", "gymnasium", "mujoco", "minari")
 
 
 class GenerationConfigError(HipodeError):
@@ -683,36 +680,3 @@ def _manifest(
         "request": asdict(request),
         "request_key": request.key(),
     }
-
-
-def package_versions() -> dict[str, str | None]:
-    """Versions of this package, its numeric stack, Python and the code's git commit
-    (None where unknown)."""
-    versions: dict[str, str | None] = {
-        "hipode_pipeline": hipode_pipeline.__version__,
-        "python": platform.python_version(),
-    }
-    for name in VERSIONED_PACKAGES:
-        try:
-            versions[name] = metadata.version(name)
-        except metadata.PackageNotFoundError:
-            versions[name] = None
-    versions["git_commit"] = _git_commit()
-    return versions
-
-
-def _git_commit() -> str | None:
-    try:
-        done = subprocess.run(
-            ["git", "rev-parse", "HEAD"],
-            cwd=Path(hipode_pipeline.__file__).resolve().parent,
-            capture_output=True,
-            text=True,
-            timeout=5,
-            check=False,
-        )
-    except (OSError, subprocess.SubprocessError):
-        return None
-    if done.returncode != 0:
-        return None
-    return done.stdout.strip() or None

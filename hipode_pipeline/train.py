@@ -15,12 +15,10 @@ exactly as an uninterrupted run would.
 from __future__ import annotations
 
 import json
-import platform
 import shutil
 import time
 import tomllib
 from dataclasses import asdict, dataclass, field
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +40,7 @@ from hipode_pipeline.merge import MergedData, load_merged
 from hipode_pipeline.paths import stages_dir
 from hipode_pipeline.replay import MIXING_MODES, MixedReplay
 from hipode_pipeline.tasks import get_task
+from hipode_pipeline.versions import package_versions
 
 DATA_CHOICES = ("merged", "source")
 BEST_LABEL = "best of all evaluations (optimistic: picked on the evaluation episodes themselves)"
@@ -87,16 +86,6 @@ def train_settings() -> dict[str, Any]:
 
 def run_folder(out_dir: Path, task: str, learner: str, data: str, seed: int) -> Path:
     return Path(out_dir) / task / f"{learner.replace(':', '-')}-{data}-seed{seed}"
-
-
-def versions() -> dict[str, str]:
-    found = {"python": platform.python_version()}
-    for package in ("hipode-pipeline", "torch", "numpy", "gymnasium", "mujoco", "h5py", "minari"):
-        try:
-            found[package] = metadata.version(package)
-        except metadata.PackageNotFoundError:
-            found[package] = "not installed"
-    return found
 
 
 def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
@@ -252,7 +241,7 @@ def run_training(
         "artifact_checksum": (merged.artifact_manifest or {}).get("checksum"),
         "device": str(device_obj),
         "torch_threads": torch.get_num_threads(),
-        "versions": versions(),
+        "versions": package_versions(),
     }
     run_dir = run_folder(out_dir, task_obj.name, learner, data, seed)
     checkpoint_path, metrics_path = run_dir / "checkpoint.pt", run_dir / "metrics.jsonl"

@@ -15,7 +15,6 @@ import time
 import tomllib
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
-from importlib import metadata as package_metadata
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +40,7 @@ from hipode_pipeline.errors import DataFormatError, HipodeError
 from hipode_pipeline.files import save_npz_atomic, save_torch_atomic, write_json_atomic
 from hipode_pipeline.paths import stages_dir, use_datasets_root
 from hipode_pipeline.tasks import Task
+from hipode_pipeline.versions import package_versions
 
 RECIPE_FILE = "collect.toml"
 # the behaviour policies each dataset kind needs
@@ -526,16 +526,6 @@ def measured_return(
 # ---- the whole collection --------------------------------------------------------------------
 
 
-def _versions() -> dict[str, str]:
-    versions = {}
-    for name in ("torch", "gymnasium", "mujoco", "minari", "numpy", "hipode-pipeline"):
-        try:
-            versions[name.replace("-", "_")] = package_metadata.version(name)
-        except package_metadata.PackageNotFoundError:
-            versions[name.replace("-", "_")] = "unknown"
-    return versions
-
-
 def _episode_return_stats(episodes: list[dict[str, np.ndarray]], task: Task) -> dict[str, Any]:
     """Returns of the dataset's episodes that were not cut by the collection itself."""
     time_limit = make_env(task.env_id)[1]
@@ -677,7 +667,7 @@ def _collect_in(
             "transitions": transitions,
             "training": {k: v for k, v in milestones.items() if k in ("medium", "expert")},
             "collect_seconds": {k: round(v, 3) for k, v in phases.items()},
-            "versions": _versions(),
+            "versions": package_versions(),
         }
     }
     path = write_minari_dataset(

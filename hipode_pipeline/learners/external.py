@@ -113,7 +113,8 @@ def _train_d3rlpy(
     """Train d3rlpy's `algo_name` (e.g. TD3PlusBC) on the merged data, evaluate it like ours and
     write config.json, metrics.jsonl and scores.json (no resume: d3rlpy keeps its own state)."""
     from hipode_pipeline.files import write_json_atomic
-    from hipode_pipeline.train import TrainResult, finish_run, versions
+    from hipode_pipeline.train import TrainResult, finish_run
+    from hipode_pipeline.versions import package_versions
 
     d3rlpy = require_d3rlpy()
     config_class = getattr(d3rlpy.algos, f"{algo_name}Config", None)
@@ -150,7 +151,7 @@ def _train_d3rlpy(
         "source_sha256": merged.source["sha256"],
         "artifact_checksum": (merged.artifact_manifest or {}).get("checksum"),
         "artifact_path": None if merged.artifact_path is None else str(merged.artifact_path),
-        "versions": {**versions(), "d3rlpy": d3rlpy.__version__},
+        "versions": {**package_versions(), "d3rlpy": d3rlpy.__version__},
     }
     write_json_atomic(run_dir / "config.json", config)
     evaluations: list[dict[str, Any]] = []
