@@ -12,7 +12,7 @@ from builders import make_d4rl_file, make_episodes, make_minari_dataset
 from hipode_pipeline.data.d4rl_source import infer_timeouts, load_d4rl_hdf5
 from hipode_pipeline.data.load import (
     describe_source,
-    env_family,
+    registry_family,
     load_source,
     task_for_env,
     task_from_file_name,
@@ -232,7 +232,7 @@ def test_d4rl_refs_from_file_attributes_then_file_name_then_none(tmp_path):
 def test_registry_matching_by_env_id_family_and_file_name():
     assert task_for_env("HalfCheetah-v4").env == "halfcheetah"
     assert task_for_env("AdroitHandPen-v1").env == "pen"
-    assert env_family("hopper-medium-v2") == "hopper"
+    assert registry_family("hopper-medium-v2") == "hopper"
     assert task_for_env("CartPole-v1") is None
     assert task_from_file_name("walker2d_medium_expert-v2.hdf5").name == "walker2d-m-e"
     assert task_from_file_name("notes.hdf5") is None

@@ -79,7 +79,7 @@ def complete_from_registry(info: SourceInfo, task: Task | None) -> SourceInfo:
     if (
         match is None
         and task is not None
-        and (info.env_id is None or env_family(info.env_id) == task.env)
+        and (info.env_id is None or registry_family(info.env_id) == task.env)
     ):
         match = task
     if match is None:
@@ -107,7 +107,7 @@ def complete_from_registry(info: SourceInfo, task: Task | None) -> SourceInfo:
     )
 
 
-def env_family(env_id: str) -> str:
+def registry_family(env_id: str) -> str:
     """The env family of a gymnasium or D4RL id: Hopper-v5 and hopper-medium-v2 -> hopper."""
     name = re.sub(r"-v\d+$", "", env_id.strip()).lower()
     name = name.split("-")[0]
@@ -122,7 +122,7 @@ def task_for_env(env_id: str) -> Task | None:
     exact = [t for t in tasks if t.env_id == env_id]
     if exact:
         return exact[0]
-    family = env_family(env_id)
+    family = registry_family(env_id)
     return next((t for t in tasks if t.env == family), None)
 
 
