@@ -12,8 +12,8 @@ from builders import make_d4rl_file, make_episodes, make_minari_dataset
 from hipode_pipeline.data.d4rl_source import infer_timeouts, load_d4rl_hdf5
 from hipode_pipeline.data.load import (
     describe_source,
-    registry_family,
     load_source,
+    registry_family,
     task_for_env,
     task_from_file_name,
 )
