@@ -15,50 +15,19 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import shlex
 import subprocess
 import sys
-import threading
 import time
 from datetime import UTC, datetime
 from pathlib import Path
+
+from machine import LoadSampler, cpu_name
 
 REPO = Path(__file__).resolve().parent.parent
 RESULTS = REPO / "bench" / "results"
 RUNS = ("stage_one", "rerun_up_to_date", "rerun_forced_cached_generators")
 PHASES = ("load", "verify", "train", "generate", "write", "total")
-
-
-class LoadSampler:
-    """1-minute load average every few seconds while a run is going."""
-
-    def __init__(self, every: float = 5.0):
-        self.every, self.samples = every, []
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            self.samples.append(os.getloadavg()[0])
-            self._stop.wait(self.every)
-
-    def __enter__(self) -> LoadSampler:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self._stop.set()
-        self._thread.join()
-
-    def stats(self) -> dict[str, float]:
-        values = self.samples or [os.getloadavg()[0]]
-        return {
-            "min": min(values),
-            "mean": sum(values) / len(values),
-            "max": max(values),
-            "samples": len(values),
-        }
 
 
 def run_stage_one(args: list[str], log: Path) -> dict:
@@ -87,16 +56,6 @@ def run_stage_one(args: list[str], log: Path) -> dict:
         "load_average_1min": load.stats(),
         "summary": json.loads(done.stdout),
     }
-
-
-def cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def phase_text(seconds: dict[str, float]) -> str:

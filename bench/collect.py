@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import shutil
 import sys
 import time
@@ -20,6 +19,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 import torch
+from machine import cpu_name
 
 from hipode_pipeline.data.collect import collect, work_dir
 from hipode_pipeline.data.minari_write import dataset_dir
@@ -28,16 +28,6 @@ from hipode_pipeline.tasks import get_task
 
 RESULTS = Path(__file__).resolve().parent / "results"
 TASKS = ("hopper-m-r", "hopper-m")
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def _load() -> list[float]:
@@ -104,7 +94,7 @@ def main() -> None:
     runs.sort(key=lambda r: TASKS.index(r["task"]))
     report = {
         "machine": {
-            "cpu": _cpu_model(),
+            "cpu": cpu_name(),
             "cores": os.cpu_count(),
             "torch_threads": torch.get_num_threads(),
             "note": "shared machine: other jobs ran beside this one; see the load averages",

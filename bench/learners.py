@@ -27,12 +27,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from machine import load_average
 
 RESULTS = Path(__file__).resolve().parent / "results"
-
-
-def load_average() -> str:
-    return " ".join(f"{x:.2f}" for x in os.getloadavg())
 
 
 def bench_data(dataset: str | None, n: int, seed: int):

@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
-import subprocess
 import sys
 import tempfile
 import time
@@ -23,6 +21,7 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import torch
+from machine import cpu_name, load_average
 
 from hipode_pipeline.data.normalizer import StateNormalizer
 from hipode_pipeline.data.transitions import Transitions
@@ -125,22 +124,6 @@ def run_one(
             result["sample_mse"] = float((next_mean - held["s_next"]).pow(2).mean())
             result["reward_mse"] = float((reward_mean - held["r"]).pow(2).mean())
     return result
-
-
-def load_average() -> str:
-    return " ".join(f"{x:.2f}" for x in os.getloadavg())
-
-
-def cpu_name() -> str:
-    try:
-        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
-        return next(
-            line.split(":", 1)[1].strip()
-            for line in out.splitlines()
-            if line.startswith("Model name")
-        )
-    except (OSError, subprocess.CalledProcessError, StopIteration):
-        return platform.processor() or "unknown"
 
 
 def quality_table(transitions: Transitions, args: argparse.Namespace) -> list[str]:

@@ -28,7 +28,6 @@ import platform
 import shlex
 import statistics
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
@@ -42,6 +41,7 @@ import typer
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # quality_worker beside this file
 
 import quality_worker  # noqa: E402
+from machine import LoadSampler  # noqa: E402
 from quality_worker import RunSpec, run_one  # noqa: E402
 
 from hipode_pipeline import console  # noqa: E402
@@ -376,35 +376,6 @@ def run_ray(specs: list[RunSpec], address: str | None, workers: int) -> Iterator
     finally:
         if started_here:
             ray.shutdown()
-
-
-class LoadSampler:
-    """The 1-minute load average every few seconds while the sweep runs (the machine is shared)."""
-
-    def __init__(self, every: float = 10.0):
-        self.every, self.samples = every, [os.getloadavg()[0]]
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-
-    def _run(self) -> None:
-        while not self._stop.wait(self.every):
-            self.samples.append(os.getloadavg()[0])
-
-    def __enter__(self) -> LoadSampler:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self._stop.set()
-        self._thread.join()
-
-    def stats(self) -> dict[str, float]:
-        return {
-            "min": min(self.samples),
-            "mean": statistics.fmean(self.samples),
-            "max": max(self.samples),
-            "samples": len(self.samples),
-        }
 
 
 def mean_std(values: list[float]) -> tuple[float, float]:
