@@ -19,6 +19,7 @@ from hipode_pipeline.data.load import HDF5_SUFFIXES, task_for_env, task_from_fil
 from hipode_pipeline.data.minari_source import METADATA_FILE, env_id_of, ref_scores_of
 from hipode_pipeline.errors import DataFormatError
 from hipode_pipeline.paths import datasets_root
+from hipode_pipeline.tasks import Task
 
 ARTIFACTS_DIR = "artifacts"
 # Folders of the root that hold no source datasets (generator caches, run outputs)
@@ -133,9 +134,7 @@ def _describe_minari(root: Path, folder: Path) -> LocalDataset:
         transitions=_int_or_none(metadata.get("total_steps")),
         episodes=_int_or_none(metadata.get("total_episodes")),
         has_ref_scores=has_refs,
-        ref_scores_from="dataset"
-        if has_refs
-        else ("registry" if env_id and task_for_env(env_id) else None),
+        ref_scores_from=_refs_from(has_refs, task_for_env(env_id) if env_id else None),
         size_bytes=size,
         path=dataset_id,
     )
@@ -153,19 +152,7 @@ def _describe_file(root: Path, file: Path, kind: str) -> LocalDataset:
         note = None
     except (OSError, DataFormatError, ValueError) as error:
         env_id, rows, has_refs, note = None, None, False, f"unreadable ({error})"
-    task = task_from_file_name(file) if env_id is None else task_for_env(env_id)
-    return LocalDataset(
-        id=relative,
-        kind=kind,
-        env_id=env_id or (task.env_id if task else None),
-        transitions=rows,
-        episodes=None,
-        has_ref_scores=has_refs,
-        ref_scores_from="dataset" if has_refs else ("registry" if task else None),
-        size_bytes=size,
-        path=relative,
-        note=note,
-    )
+    return _file_entry(file, relative, kind, size, env_id, rows, has_refs, note=note)
 
 
 def _describe_artifact(file: Path, relative: str, size: int) -> LocalDataset | None:
@@ -182,24 +169,52 @@ def _describe_artifact(file: Path, relative: str, size: int) -> LocalDataset | N
         return None
     task_name = manifest.get("task") if isinstance(manifest.get("task"), str) else None
     env_id = manifest.get("env_id") if isinstance(manifest.get("env_id"), str) else None
-    task = task_for_env(env_id) if env_id else task_from_file_name(file)
     has_refs = (
         float_or_none(manifest.get("ref_min_score")) is not None
         and float_or_none(manifest.get("ref_max_score")) is not None
     )
+    return _file_entry(
+        file,
+        relative,
+        "artifact",
+        size,
+        env_id,
+        rows,
+        has_refs,
+        task=task_name,
+        schema_version=(manifest.get("schema") or {}).get("version"),
+    )
+
+
+def _file_entry(
+    file: Path,
+    relative: str,
+    kind: str,
+    size: int,
+    env_id: str | None,
+    rows: int | None,
+    has_refs: bool,
+    **extra: Any,
+) -> LocalDataset:
+    """A flat file's entry; env id and refs fall back to the task its env or name points to."""
+    task = task_for_env(env_id) if env_id else task_from_file_name(file)
     return LocalDataset(
         id=relative,
-        kind="artifact",
+        kind=kind,
         env_id=env_id or (task.env_id if task else None),
         transitions=rows,
         episodes=None,
         has_ref_scores=has_refs,
-        ref_scores_from="dataset" if has_refs else ("registry" if task else None),
+        ref_scores_from=_refs_from(has_refs, task),
         size_bytes=size,
         path=relative,
-        task=task_name,
-        schema_version=(manifest.get("schema") or {}).get("version"),
+        **extra,
     )
+
+
+def _refs_from(has_refs: bool, task: Task | None) -> str | None:
+    """Where a loader takes the reference scores from: the data, the registry, or nowhere."""
+    return "dataset" if has_refs else ("registry" if task else None)
 
 
 def _file_header(file: Path) -> tuple[str | None, int | None, bool]:
