@@ -9,7 +9,6 @@ its scores are read back, which is what makes a sweep resumable across sessions.
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -54,16 +53,10 @@ class RunSpec:
 def finished_scores(spec: RunSpec) -> dict[str, Any] | None:
     """The scores.json of a finished run with this spec's settings; None if there is none yet.
     A finished run with other settings is refused rather than silently reported."""
-    from hipode_pipeline.errors import OverwriteError
+    from hipode_pipeline import train
 
-    run_dir = spec.run_dir()
-    scores_path, config_path = run_dir / "scores.json", run_dir / "config.json"
-    if spec.force or not scores_path.is_file():
+    if spec.force:
         return None
-    scores = json.loads(scores_path.read_text())
-    if scores.get("steps", 0) < spec.steps:
-        return None  # unfinished at this budget: run_training continues it
-    config = json.loads(config_path.read_text()) if config_path.is_file() else {}
     expected = {
         "data": spec.data,
         "eta": spec.eta,
@@ -73,13 +66,7 @@ def finished_scores(spec: RunSpec) -> dict[str, Any] | None:
         "eval_episodes": spec.eval_episodes,
         "artifact_checksum": spec.artifact_checksum,
     }
-    differing = [name for name, value in expected.items() if config.get(name) != value]
-    if differing:
-        raise OverwriteError(
-            f"{run_dir}: holds a finished run with other settings ({', '.join(differing)} "
-            "differ); pass --force to train it again or --out for another folder"
-        )
-    return scores
+    return train.finished_scores(spec.run_dir(), spec.steps, expected)
 
 
 def evaluation_at(evaluations: list[dict[str, Any]], step: int, run_dir: Path) -> dict[str, Any]:

@@ -369,29 +369,52 @@ def finish_run(result: TrainResult, eval_episodes: int) -> TrainResult:
     return result
 
 
+def differing_settings(run_dir: Path, expected: dict[str, Any]) -> list[str]:
+    """The keys of `expected` whose value differs from the run folder's config.json."""
+    config_path = run_dir / "config.json"
+    previous = json.loads(config_path.read_text()) if config_path.is_file() else {}
+    return [
+        key
+        for key, value in expected.items()
+        if previous.get(key) != json.loads(json.dumps(value, default=str))
+    ]
+
+
+def finished_scores(run_dir: Path, steps: int, expected: dict[str, Any]) -> dict[str, Any] | None:
+    """scores.json of a run in `run_dir` finished to at least `steps` updates; None if there is
+    none yet. Read-only; a finished run whose settings differ from `expected` is refused."""
+    scores_path = run_dir / "scores.json"
+    if not scores_path.is_file():
+        return None
+    scores = json.loads(scores_path.read_text())
+    if scores.get("steps", 0) < steps:
+        return None  # unfinished at this budget: run_training continues it
+    differing = differing_settings(run_dir, expected)
+    if differing:
+        raise OverwriteError(
+            f"{run_dir}: holds a finished run with other settings ({', '.join(differing)} "
+            "differ); pass --force to train it again or --out for another folder"
+        )
+    return scores
+
+
 def _prepare_run_dir(
     run_dir: Path, config: dict[str, Any], steps: int, force: bool
 ) -> dict[str, Any] | None:
     """Make the run folder; return the checkpoint to resume from, if any."""
-    config_path, checkpoint_path = run_dir / "config.json", run_dir / "checkpoint.pt"
+    checkpoint_path = run_dir / "checkpoint.pt"
     if force and run_dir.exists():
         shutil.rmtree(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
-    if not config_path.is_file():
+    if not (run_dir / "config.json").is_file():
         return None
-    previous = json.loads(config_path.read_text())
-    differing = [
-        k
-        for k in IDENTITY_KEYS
-        if previous.get(k) != json.loads(json.dumps(config[k], default=str))
-    ]
+    differing = differing_settings(run_dir, {key: config[key] for key in IDENTITY_KEYS})
     if differing:
         raise OverwriteError(
             f"{run_dir} holds a run with other settings ({', '.join(differing)} differ); "
             "pass --force to replace it or --out for another folder"
         )
-    scores_path = run_dir / "scores.json"
-    if scores_path.is_file() and json.loads(scores_path.read_text()).get("steps", 0) >= steps:
+    if finished_scores(run_dir, steps, {}) is not None:
         raise OverwriteError(
             f"{run_dir} already finished {steps} steps (see scores.json); "
             "pass --force to train again"

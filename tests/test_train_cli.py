@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -165,9 +166,16 @@ def test_rerun_with_other_settings_is_refused(tmp_path, tiny_pair):
         batch_size=16,
         show_progress=False,
     )
-    run_training("hopper-m-r", out_dir=tmp_path, **common)
+    result = run_training("hopper-m-r", out_dir=tmp_path, **common)
     with pytest.raises(OverwriteError, match="eta"):
         run_training("hopper-m-r", out_dir=tmp_path, eta=0.1, **{**common, "steps": 20})
+    # the read-only check a sweep uses: finished at this budget, not at a longer one
+    run_dir = Path(result.run_dir)
+    same = {"eta": result.eta, "seed": 0, "data": "merged"}
+    assert train_module.finished_scores(run_dir, 10, same)["steps"] == 10
+    assert train_module.finished_scores(run_dir, 20, same) is None
+    with pytest.raises(OverwriteError, match="seed"):
+        train_module.finished_scores(run_dir, 10, {**same, "seed": 1})
 
 
 def small_transitions() -> Transitions:
