@@ -46,6 +46,9 @@ from quality_worker import RunSpec, run_one  # noqa: E402
 
 from hipode_pipeline import console  # noqa: E402
 from hipode_pipeline.commands.common import (  # noqa: E402
+    DeviceOption,
+    EvalEpisodesOption,
+    EvalEveryOption,
     ForceFlag,
     JsonFlag,
     RootOption,
@@ -748,12 +751,8 @@ def main(
             "--budget", help="cpu (train.toml cpu_steps) or paper (1M); default by device."
         ),
     ] = None,
-    eval_every: Annotated[
-        int | None, typer.Option("--eval-every", help="Updates between evaluations.")
-    ] = None,
-    eval_episodes: Annotated[
-        int | None, typer.Option("--eval-episodes", help="Episodes per evaluation.")
-    ] = None,
+    eval_every: EvalEveryOption = None,
+    eval_episodes: EvalEpisodesOption = None,
     alpha: Annotated[
         str,
         typer.Option(
@@ -796,9 +795,7 @@ def main(
     ] = None,
     workers: Annotated[int, typer.Option("--workers", help="Parallel runs.")] = 1,
     threads: Annotated[int, typer.Option("--threads", help="Torch threads per run.")] = 1,
-    device: Annotated[
-        str | None, typer.Option("--device", help="cpu, cuda, ... (default: CUDA when present).")
-    ] = None,
+    device: DeviceOption = None,
     out: Annotated[
         Path, typer.Option("--out", help="Run folders and ablation artifacts.")
     ] = QualityConfig.out,

@@ -36,3 +36,12 @@ RootOption = Annotated[
 ]
 SeedOption = Annotated[int, typer.Option("--seed", help="Seed for every random number generator.")]
 ForceFlag = Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")]
+EvalEveryOption = Annotated[
+    int | None, typer.Option("--eval-every", help="Updates between evaluations.")
+]
+EvalEpisodesOption = Annotated[
+    int | None, typer.Option("--eval-episodes", help="Episodes per evaluation.")
+]
+DeviceOption = Annotated[
+    str | None, typer.Option("--device", help="cpu, cuda, cuda:1 ... (default: CUDA when present).")
+]

@@ -8,7 +8,16 @@ from typing import Annotated
 import typer
 
 from hipode_pipeline import console
-from hipode_pipeline.commands.common import ForceFlag, JsonFlag, RootOption, SeedOption, user_errors
+from hipode_pipeline.commands.common import (
+    DeviceOption,
+    EvalEpisodesOption,
+    EvalEveryOption,
+    ForceFlag,
+    JsonFlag,
+    RootOption,
+    SeedOption,
+    user_errors,
+)
 
 
 @user_errors
@@ -43,12 +52,8 @@ def train_command(
         str,
         typer.Option("--mixing", help="mixed (eta per batch) or union (uniform over all rows)."),
     ] = "mixed",
-    eval_every: Annotated[
-        int | None, typer.Option("--eval-every", help="Updates between evaluations.")
-    ] = None,
-    eval_episodes: Annotated[
-        int | None, typer.Option("--eval-episodes", help="Episodes per evaluation.")
-    ] = None,
+    eval_every: EvalEveryOption = None,
+    eval_episodes: EvalEpisodesOption = None,
     batch_size: Annotated[
         int | None, typer.Option("--batch-size", help="Transitions per update.")
     ] = None,
@@ -70,9 +75,7 @@ def train_command(
             "--out", help="Runs folder; the run goes to OUT/<task>/<learner>-<data>-seed<seed>/."
         ),
     ] = Path("runs"),
-    device: Annotated[
-        str | None, typer.Option("--device", help="cpu | cuda (default: CUDA when present).")
-    ] = None,
+    device: DeviceOption = None,
     root: RootOption = None,
     force: ForceFlag = False,
     json_output: JsonFlag = False,
