@@ -35,8 +35,8 @@ from hipode_pipeline.envs import termination_rule
 from hipode_pipeline.errors import (
     DataFormatError,
     DatasetNotFoundError,
-    HipodeError,
     OverwriteError,
+    SettingError,
 )
 from hipode_pipeline.files import file_sha256, write_json_atomic
 from hipode_pipeline.models.generators import GeneratorConfig, Generators, train_generators
@@ -48,10 +48,6 @@ SELECTIONS = ("batch", "global")
 CANDIDATE_SOURCES = ("model", "uniform")
 PROFILES = ("full", "quick")
 COUNTED = ("source_states_drawn", "next_states_sampled", "nonfinite_dropped", "kept")
-
-
-class GenerationConfigError(HipodeError):
-    """A generation setting outside its valid range."""
 
 
 @dataclass(frozen=True)
@@ -84,7 +80,7 @@ class GenerationConfig:
         }
         for name, (ok, expected) in checks.items():
             if not ok:
-                raise GenerationConfigError(
+                raise SettingError(
                     f"generation setting '{name}': expected {expected}, "
                     f"found {getattr(self, name)!r}"
                 )
@@ -208,7 +204,7 @@ def generate(
     terminal = termination_rule(env_id, source.obs_dim, origin=f"source (env {env_id})")
     target = synthetic_count(config.eta, len(source))
     if target < 1:
-        raise GenerationConfigError(
+        raise SettingError(
             f"--eta {config.eta}: keeps no transition of the source's {len(source)}; "
             f"expected eta >= {0.5 / len(source):.2g}"
         )

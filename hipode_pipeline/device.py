@@ -4,11 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from hipode_pipeline.errors import HipodeError
-
-
-class DeviceUnavailableError(HipodeError):
-    """The user asked for a device this machine does not have."""
+from hipode_pipeline.errors import DeviceUnavailableError
 
 
 def select_device(preferred: str | None = None) -> torch.device:

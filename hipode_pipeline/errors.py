@@ -36,3 +36,27 @@ class DatasetNotFoundError(HipodeError):
 
 class OverwriteError(HipodeError):
     """An output already exists and the user did not pass --force."""
+
+
+class SettingError(HipodeError):
+    """A setting, profile name or override outside its valid range."""
+
+
+class UnsafeEnvError(HipodeError):
+    """An environment id that is unknown or would run code from outside gymnasium."""
+
+
+class DeviceUnavailableError(HipodeError):
+    """The user asked for a device this machine does not have."""
+
+
+class NotCollectableError(HipodeError):
+    """A task whose data cannot be built here (only MuJoCo locomotion can)."""
+
+
+class CollectionBusyError(HipodeError):
+    """Another process is collecting into the same work folder."""
+
+
+class CollectionInterrupted(HipodeError):
+    """Training stopped on purpose after a checkpoint (STOP_AFTER_STEPS); rerun to resume."""

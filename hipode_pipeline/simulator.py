@@ -15,7 +15,7 @@ import mujoco
 import numpy as np
 
 from hipode_pipeline.envs import env_family
-from hipode_pipeline.errors import DataFormatError, HipodeError
+from hipode_pipeline.errors import DataFormatError, UnsafeEnvError
 
 # only environments implemented by gymnasium itself are ever constructed
 SAFE_ENTRY_POINT_PREFIX = "gymnasium.envs."
@@ -25,10 +25,6 @@ RESTORABLE_FAMILIES = ("Hopper", "Walker2d", "HalfCheetah")
 CLIPPED_VELOCITY_BOUND = {"Hopper": 10.0, "Walker2d": 10.0, "HalfCheetah": None}
 # velocities (nv) are the trailing columns of the observation
 VELOCITY_DIMS = {"Hopper": 6, "Walker2d": 9, "HalfCheetah": 9}
-
-
-class UnsafeEnvError(HipodeError):
-    """An environment id that is unknown or would run code from outside gymnasium."""
 
 
 def check_env_id(env_id: object, origin: str | Path | None = None) -> gym.envs.registration.EnvSpec:

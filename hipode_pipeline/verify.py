@@ -37,7 +37,7 @@ from hipode_pipeline.data.normalizer import StateNormalizer
 from hipode_pipeline.data.transitions import Transitions
 from hipode_pipeline.device import select_device
 from hipode_pipeline.envs import termination_rule
-from hipode_pipeline.errors import DataFormatError, HipodeError, OverwriteError
+from hipode_pipeline.errors import DataFormatError, OverwriteError, SettingError
 from hipode_pipeline.files import (
     atomic_path,
     file_sha256,
@@ -62,10 +62,6 @@ DEFAULT_TOLERANCE = 0.1
 # added to the source stds before dividing, so a constant dimension stays finite
 STD_EPS = 1e-6
 SUMMARY_QUANTITIES = ("next_state_error", "reward_error", "novelty")
-
-
-class VerifySettingError(HipodeError):
-    """A verify setting outside its valid range."""
 
 
 @dataclass(frozen=True)
@@ -463,11 +459,9 @@ def verify_artifact(
     rollouts unless `baseline` is False) against the simulator; write the JSON report and the
     novelty-vs-authenticity PNG (atomically; existing outputs need `force`)."""
     if sample < 1:
-        raise VerifySettingError(
-            f"verify setting 'sample': expected a positive integer, found {sample}"
-        )
+        raise SettingError(f"verify setting 'sample': expected a positive integer, found {sample}")
     if not (tolerance > 0 and np.isfinite(tolerance)):
-        raise VerifySettingError(
+        raise SettingError(
             f"verify setting 'tolerance': expected a positive number, found {tolerance}"
         )
     path = Path(path)

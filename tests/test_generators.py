@@ -10,14 +10,13 @@ import pytest
 import torch
 
 from hipode_pipeline.data.transitions import Transitions
-from hipode_pipeline.errors import DataFormatError
+from hipode_pipeline.errors import DataFormatError, SettingError
 from hipode_pipeline.files import file_sha256
 from hipode_pipeline.models import training
 from hipode_pipeline.models.generators import (
     FIELD_OWNERS,
     MODEL_NAMES,
     GeneratorConfig,
-    GeneratorConfigError,
     cache_dir_for,
     train_generators,
 )
@@ -71,13 +70,13 @@ def test_profiles_hash_and_validation():
     assert full.hash() == GeneratorConfig().hash() and len(full.hash()) == 64
     assert full.hash() != GeneratorConfig(alpha=2.0).hash()
     assert GeneratorConfig.from_dict(json.loads(json.dumps(quick.to_dict()))) == quick
-    with pytest.raises(GeneratorConfigError, match="quick"):
+    with pytest.raises(SettingError, match="quick"):
         GeneratorConfig.profile("fast")
-    with pytest.raises(GeneratorConfigError, match="'penalty'.*target"):
+    with pytest.raises(SettingError, match="'penalty'.*target"):
         GeneratorConfig(penalty="huber")
-    with pytest.raises(GeneratorConfigError, match="alpah"):
+    with pytest.raises(SettingError, match="alpah"):
         GeneratorConfig.profile("full", alpah=1.0)
-    with pytest.raises(GeneratorConfigError, match="value_steps"):
+    with pytest.raises(SettingError, match="value_steps"):
         GeneratorConfig(value_steps=-1)
 
 

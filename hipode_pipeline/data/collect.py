@@ -36,7 +36,12 @@ from hipode_pipeline.data.ppo import (
     run_policy,
     save_policy,
 )
-from hipode_pipeline.errors import DataFormatError, HipodeError
+from hipode_pipeline.errors import (
+    CollectionBusyError,
+    CollectionInterrupted,
+    DataFormatError,
+    NotCollectableError,
+)
 from hipode_pipeline.files import save_npz_atomic, save_torch_atomic, write_json_atomic
 from hipode_pipeline.paths import stages_dir, use_datasets_root
 from hipode_pipeline.tasks import Task
@@ -55,18 +60,6 @@ POLICIES_BY_KIND = {
 STREAM_IDS = {"random": 1, "medium": 2, "expert": 3}
 # tests set this to stop training right after the first checkpoint at or past this many steps
 STOP_AFTER_STEPS: int | None = None
-
-
-class NotCollectableError(HipodeError):
-    """A task whose data cannot be built here (only MuJoCo locomotion can)."""
-
-
-class CollectionBusyError(HipodeError):
-    """Another process is collecting into the same work folder."""
-
-
-class CollectionInterrupted(HipodeError):
-    """Training stopped on purpose after a checkpoint (STOP_AFTER_STEPS); rerun to resume."""
 
 
 @dataclass(frozen=True)

@@ -19,7 +19,7 @@ from hipode_pipeline.console import progress as progress_display
 from hipode_pipeline.data.normalizer import StateNormalizer
 from hipode_pipeline.data.transitions import Transitions
 from hipode_pipeline.device import select_device
-from hipode_pipeline.errors import DataFormatError, HipodeError
+from hipode_pipeline.errors import DataFormatError, HipodeError, SettingError
 from hipode_pipeline.files import (
     file_sha256,
     save_torch_atomic,
@@ -74,10 +74,6 @@ FIELD_OWNERS: dict[str, tuple[str, ...]] = {
         )
     },
 }
-
-
-class GeneratorConfigError(HipodeError):
-    """A generator setting, profile name or override that is not valid."""
 
 
 @dataclass(frozen=True)
@@ -160,7 +156,7 @@ class GeneratorConfig:
                     checks[name] = (False, "a positive integer")
         for name, (ok, expected) in checks.items():
             if not ok:
-                raise GeneratorConfigError(
+                raise SettingError(
                     f"generator config field '{name}': expected {expected}, "
                     f"found {getattr(self, name)!r}"
                 )
@@ -169,7 +165,7 @@ class GeneratorConfig:
     def profile(cls, name: str, **overrides: Any) -> GeneratorConfig:
         """Profile "full" (the real run's budgets) or "quick" (a few hundred steps per model)."""
         if name not in PROFILES:
-            raise GeneratorConfigError(f"generator profile '{name}': expected one of {PROFILES}")
+            raise SettingError(f"generator profile '{name}': expected one of {PROFILES}")
         values: dict[str, Any] = {}
         if name == "quick":
             values = {
@@ -185,7 +181,7 @@ class GeneratorConfig:
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(overrides) - known)
         if unknown:
-            raise GeneratorConfigError(
+            raise SettingError(
                 f"generator config override {unknown}: expected fields among {sorted(known)}"
             )
         return cls(**{**values, **overrides})
