@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import sys
 from typing import Any
 
@@ -18,8 +19,20 @@ from rich.progress import (
 )
 from rich.table import Table
 
-err = Console(stderr=True)
-out = Console()
+# width off a terminal (logs, pipes, CI) unless $COLUMNS says otherwise
+LOG_WIDTH = 160
+
+
+def _console(stderr: bool) -> Console:
+    console = Console(stderr=stderr)
+    # rich falls back to 80 columns off a terminal, which truncates progress lines in logs
+    if not console.is_terminal and "COLUMNS" not in os.environ:
+        console.width = LOG_WIDTH
+    return console
+
+
+err = _console(stderr=True)
+out = _console(stderr=False)
 
 
 def progress(*, disable: bool = False) -> Progress:
