@@ -10,7 +10,14 @@ import typer
 
 from hipode_pipeline import console
 from hipode_pipeline.augment import run_augment
-from hipode_pipeline.commands.common import ForceFlag, JsonFlag, RootOption, SeedOption, user_errors
+from hipode_pipeline.commands.common import (
+    DeviceOption,
+    ForceFlag,
+    JsonFlag,
+    RootOption,
+    SeedOption,
+    user_errors,
+)
 
 
 class Profile(StrEnum):
@@ -94,9 +101,7 @@ def augment_command(
         ),
     ] = None,
     root: RootOption = None,
-    device: Annotated[
-        str | None, typer.Option(help="cpu, cuda or auto (default: CUDA when present).")
-    ] = None,
+    device: DeviceOption = None,
     force: ForceFlag = False,
     json_output: JsonFlag = False,
 ) -> None:

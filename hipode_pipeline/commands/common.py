@@ -43,5 +43,6 @@ EvalEpisodesOption = Annotated[
     int | None, typer.Option("--eval-episodes", help="Episodes per evaluation.")
 ]
 DeviceOption = Annotated[
-    str | None, typer.Option("--device", help="cpu, cuda, cuda:1 ... (default: CUDA when present).")
+    str | None,
+    typer.Option("--device", help="cpu, cuda, cuda:1 or auto (default: CUDA when present)."),
 ]
