@@ -36,6 +36,7 @@ from multiprocessing import get_context
 from pathlib import Path
 from typing import Annotated, Any
 
+import numpy as np
 import typer
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # quality_worker beside this file
@@ -62,6 +63,16 @@ from hipode_pipeline.tasks import get_task  # noqa: E402
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_TASKS = ("hopper-m-r", "walker2d-m-r", "halfcheetah-m-r")
 BASELINE, HIPODE = "eta0", "hipode"
+SYNTHETIC_COLUMNS = (
+    "task",
+    "arm",
+    "rows",
+    "reward",
+    "real reward, same states",
+    "dynamics error",
+    "terminal",
+    "novelty",
+)
 WINDOW = 3  # evaluations averaged in the robustness column
 ENGINES = ("local", "ray")
 # the paper's TD3+BC numbers on D4RL v0 data (Table 11): without and with HIPODE
@@ -282,6 +293,7 @@ def prepare_artifact(task_name: str, arm: Arm, config: QualityConfig, root: Path
 def run_specs(config: QualityConfig, root: Path) -> tuple[list[RunSpec], dict[str, list[dict]]]:
     """Every (task, arm, seed) run, seeds interleaved so paired runs finish close together."""
     from hipode_pipeline.artifact import read_manifest
+    from hipode_pipeline.data.load import load_source
 
     if (config.source or config.artifact) and len(config.tasks) != 1:
         raise HipodeError("--source/--artifact: expected exactly one task in --tasks")
@@ -294,9 +306,19 @@ def run_specs(config: QualityConfig, root: Path) -> tuple[list[RunSpec], dict[st
         described[task.name] = []
         paths = {}
         for arm in arms:
-            artifact = prepare_artifact(task.name, arm, config, root)
-            paths[arm.name] = artifact
-            described[task.name].append({**asdict(arm), "artifact": display_path(artifact)})
+            paths[arm.name] = prepare_artifact(task.name, arm, config, root)
+        source_rewards = load_source(config.source or task.name, root)[0].rewards
+        for arm in arms:
+            artifact = paths[arm.name]
+            described[task.name].append(
+                {
+                    **asdict(arm),
+                    "artifact": display_path(artifact),
+                    "synthetic": None
+                    if artifact is None
+                    else synthetic_stats(artifact, source_rewards),
+                }
+            )
         for seed in config.seeds:
             for arm in arms:
                 artifact = paths[arm.name]
@@ -396,6 +418,30 @@ def curve_mean(run: dict[str, Any]) -> float:
     """Mean over all of the run's evaluations (area under the curve per update): how early an
     arm gets good, which a final score alone does not show."""
     return statistics.fmean(point[1] for point in run["curve"])
+
+
+def synthetic_stats(artifact: Path, source_rewards: np.ndarray) -> dict[str, Any]:
+    """What an arm's synthetic data is: its rewards against the real rewards at the same source
+    states, its dynamics error, terminal share and novelty (from stage one's summary)."""
+    import json
+
+    from hipode_pipeline.artifact import read_artifact
+    from hipode_pipeline.augment import summary_path
+
+    data = read_artifact(artifact)
+    rewards = data.transitions.rewards
+    summary = summary_path(artifact)
+    novelty = json.loads(summary.read_text()).get("novelty_mean") if summary.is_file() else None
+    return {
+        "rows": len(rewards),
+        "reward_mean": float(rewards.mean()),
+        "source_reward_mean_same_states": float(
+            source_rewards[data.diagnostics["source_index"]].mean()
+        ),
+        "dynamics_error_median": float(np.median(data.diagnostics["dynamics_error"])),
+        "terminal_fraction": float(data.transitions.terminals.mean()),
+        "novelty_mean": novelty,
+    }
 
 
 def paired_difference(
@@ -604,6 +650,32 @@ def markdown(report: QualityReport) -> str:
     for task, arms in report.arms.items():
         for arm in arms:
             lines.append(f"- {task} `{arm['name']}`: {arm['label']}; artifact {arm['artifact']}")
+    lines += [
+        "",
+        "Synthetic data of each arm (reward: mean over the artifact, and the real rewards "
+        "at the same source states; dynamics error: median, z-scored; novelty: mean z-scored "
+        "distance from a kept next state to its nearest source state, on stage one's sample):",
+        "",
+        "| " + " | ".join(SYNTHETIC_COLUMNS) + " |",
+        "| " + " | ".join("---" for _ in SYNTHETIC_COLUMNS) + " |",
+    ]
+    for task, arms in report.arms.items():
+        for arm in arms:
+            stats = arm.get("synthetic")
+            if stats is None:
+                continue
+            novelty = stats["novelty_mean"]
+            cells = [
+                task,
+                arm["name"],
+                f"{stats['rows']:,}",
+                f"{stats['reward_mean']:.3f}",
+                f"{stats['source_reward_mean_same_states']:.3f}",
+                f"{stats['dynamics_error_median']:.4f}",
+                f"{100 * stats['terminal_fraction']:.2f}%",
+                "n/a" if novelty is None else f"{novelty:.3f}",
+            ]
+            lines.append("| " + " | ".join(cells) + " |")
     lines += ["", "Per run (status: trained / resumed / finished earlier):", ""]
     for run in sorted(report.runs, key=lambda r: (r["task"], r["arm"], r["seed"])):
         rate = run["updates_per_second"]

@@ -11,7 +11,8 @@ import pytest
 from test_merge import write_source
 from typer.testing import CliRunner
 
-from hipode_pipeline.artifact import read_manifest
+from hipode_pipeline.artifact import read_artifact, read_manifest
+from hipode_pipeline.data.load import load_source
 from hipode_pipeline.errors import HipodeError
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
@@ -37,6 +38,16 @@ def test_quality_sweep_runs_both_arms_reports_and_resumes(tmp_path, dataset_root
     # the ablation arm got its own artifact, built with its λ
     ablation = read_manifest(tmp_path / "out" / "hopper-m-r" / "lam1" / "artifact.hdf5")
     assert ablation["hyper_parameters"]["lam"] == 1.0
+    # each arm's synthetic data is described against the real rewards at the same states
+    described = {a["name"]: a for a in report["arms"]["hopper-m-r"]}
+    lam1 = read_artifact(tmp_path / "out" / "hopper-m-r" / "lam1" / "artifact.hdf5")
+    real = load_source(str(source))[0]
+    stats = described["lam1"]["synthetic"]
+    assert described["eta0"]["synthetic"] is None
+    assert stats["rows"] == len(lam1.transitions.rewards)
+    assert stats["reward_mean"] == pytest.approx(float(lam1.transitions.rewards.mean()))
+    same_states = real.rewards[lam1.diagnostics["source_index"]].mean()
+    assert stats["source_reward_mean_same_states"] == pytest.approx(float(same_states))
     union_config = json.loads((Path(runs["mixing-union"]["run_dir"]) / "config.json").read_text())
     assert union_config["mixing"] == "union" and union_config["eta"] == 0.5
     assert (
@@ -50,7 +61,9 @@ def test_quality_sweep_runs_both_arms_reports_and_resumes(tmp_path, dataset_root
     results = tmp_path / "results"
     assert (results / "quality.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert json.loads((results / "quality.json").read_text())["runs"] == report["runs"]
-    assert "| hopper-m-r | hipode |" in (results / "quality.md").read_text()
+    markdown = (results / "quality.md").read_text()
+    assert "| hopper-m-r | hipode |" in markdown
+    assert f"| hopper-m-r | lam1 | {stats['rows']:,} | {stats['reward_mean']:.3f} |" in markdown
 
     again = json.loads(invoke(tmp_path, source, "--steps", "20").stdout)
     assert [r["status"] for r in again["runs"]] == ["finished earlier"] * 2
