@@ -597,8 +597,14 @@ def markdown(report: QualityReport) -> str:
     """quality.md: command, budget, machine and load, the table, the curves."""
     budget, machine = report.budget, report.machine
     load = machine["load_during"]
+    names = {arm["name"] for arms in report.arms.values() for arm in arms}
+    title = (
+        "Does HIPODE help TD3+BC? Same seeds, same budget, both arms"
+        if names <= {BASELINE, HIPODE}
+        else "HIPODE ablations with TD3+BC: same seeds, same budget, every arm"
+    )
     lines = [
-        "# Does HIPODE help TD3+BC? Same seeds, same budget, both arms",
+        f"# {title}",
         "",
         f"Command: `{report.command}` (OMP_WAIT_POLICY=PASSIVE), started {report.started}, "
         f"{report.seconds / 60:.1f} min wall time for the runs this invocation executed "
