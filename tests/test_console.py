@@ -11,6 +11,7 @@ def test_log_output_is_wide_unless_columns_is_set(monkeypatch, capsys):
     monkeypatch.delenv("COLUMNS", raising=False)
     log = console._console(stderr=True)
     assert not log.is_terminal and log.width >= 120
+    monkeypatch.setattr(console, "err", log)  # the module's own was made at import time
     with console.progress() as prog:
         task = prog.add_task("generate", total=10, rate="12,921 candidates/s", info=INFO)
         prog.update(task, advance=10)
