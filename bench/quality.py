@@ -109,6 +109,8 @@ class QualityConfig:
     lams: list[float] = field(default_factory=list)  # ablation: selecting rates
     penalties: list[str] = field(default_factory=list)  # ablation: value-penalty forms
     union: bool = False  # ablation: sample the union uniformly instead of η·B per batch
+    artifact_seeds: list[int] = field(default_factory=list)  # control: the hipode arm's
+    # settings with artifacts of other stage-one seeds (how much one artifact differs from another)
     baseline_arms: bool = True  # run the eta0 and hipode arms (off: ablation arms only)
     source: str | None = None  # source dataset for a single task; None: its collected dataset
     artifact: Path | None = None  # the hipode arm's artifact for a single task
@@ -183,6 +185,10 @@ def arms_for(config: QualityConfig) -> list[Arm]:
         Arm(f"penalty-{form}", "merged", {"penalty": form}, f"HIPODE, {form} value penalty")
         for form in config.penalties
     ]
+    arms += [
+        Arm(f"artifact-seed{seed}", "merged", {"seed": seed}, f"HIPODE, stage-one seed {seed}")
+        for seed in config.artifact_seeds
+    ]
     if config.union:
         arms.append(Arm("mixing-union", "merged", None, "HIPODE, uniform over the union", "union"))
     names = [arm.name for arm in arms]
@@ -255,11 +261,12 @@ def prepare_artifact(task_name: str, arm: Arm, config: QualityConfig, root: Path
         "lam": params.lam,
         "candidates": "model",
         "penalty": GeneratorConfig.__dataclass_fields__["penalty"].default,
+        "seed": config.artifact_seed,
     }
-    overrides = arm.augment or {}
+    overrides = {"seed": config.artifact_seed, **(arm.augment or {})}
     if all(defaults[key] == value for key, value in overrides.items()):
         path = config.artifact or default_artifact_path(task.name, root=root)
-        if overrides:
+        if arm.augment:
             console.err.print(f"{task.name} {arm.name}: the paper's setting; shares {path}")
         if path.is_file():
             return path
@@ -280,7 +287,6 @@ def prepare_artifact(task_name: str, arm: Arm, config: QualityConfig, root: Path
         task.name,
         source=config.source,
         profile=config.profile,
-        seed=config.artifact_seed,
         out=out,
         root=root,
         device=config.device,
@@ -718,6 +724,8 @@ def command_line(config: QualityConfig) -> str:
     if config.penalties:
         args += ["--penalty", ",".join(config.penalties)]
     args += ["--union"] if config.union else []
+    if config.artifact_seeds:
+        args += ["--artifact-seeds", ",".join(str(seed) for seed in config.artifact_seeds)]
     args += [] if config.baseline_arms else ["--no-baselines"]
     args += ["--report-only"] if config.report_only else []
     if config.profile != "full":
@@ -855,6 +863,13 @@ def main(
         str,
         typer.Option("--lam", help="Ablation: comma-separated selecting rates λ, e.g. 0.2,1.0."),
     ] = "",
+    artifact_seeds: Annotated[
+        str,
+        typer.Option(
+            "--artifact-seeds",
+            help="Control: the hipode arm's settings with artifacts of other stage-one seeds.",
+        ),
+    ] = "",
     no_baselines: Annotated[
         bool, typer.Option("--no-baselines", help="Only the ablation arms.")
     ] = False,
@@ -903,6 +918,7 @@ def main(
         lams=parse_list(lam, float, "--lam"),
         penalties=parse_list(penalty, str, "--penalty"),
         union=union,
+        artifact_seeds=parse_list(artifact_seeds, int, "--artifact-seeds"),
         baseline_arms=not no_baselines,
         source=source,
         artifact=artifact,

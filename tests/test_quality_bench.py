@@ -29,15 +29,19 @@ def invoke(tmp_path, source, *extra):
 
 def test_quality_sweep_runs_both_arms_reports_and_resumes(tmp_path, dataset_root):
     source = write_source(tmp_path / "source.hdf5", n_episodes=8)
-    first = invoke(tmp_path, source, "--steps", "20", "--lam", "1", "--union")
+    ablations = ["--lam", "1", "--union", "--artifact-seeds", "3"]
+    first = invoke(tmp_path, source, "--steps", "20", *ablations)
     assert first.exit_code == 0, first.output
     report = json.loads(first.stdout)
     runs = {r["arm"]: r for r in report["runs"]}
-    assert set(runs) == {"eta0", "hipode", "lam1", "mixing-union"}
+    assert set(runs) == {"eta0", "hipode", "lam1", "artifact-seed3", "mixing-union"}
     assert all(r["status"] == "trained" for r in runs.values())
     # the ablation arm got its own artifact, built with its λ
     ablation = read_manifest(tmp_path / "out" / "hopper-m-r" / "lam1" / "artifact.hdf5")
-    assert ablation["hyper_parameters"]["lam"] == 1.0
+    assert ablation["hyper_parameters"]["lam"] == 1.0 and ablation["seeds"]["seed"] == 0
+    # the control arm: the paper's settings, another stage-one seed
+    control = read_manifest(tmp_path / "out" / "hopper-m-r" / "artifact-seed3" / "artifact.hdf5")
+    assert control["seeds"]["seed"] == 3 and control["hyper_parameters"]["lam"] == 0.2
     # each arm's synthetic data is described against the real rewards at the same states
     described = {a["name"]: a for a in report["arms"]["hopper-m-r"]}
     lam1 = read_artifact(tmp_path / "out" / "hopper-m-r" / "lam1" / "artifact.hdf5")
@@ -94,7 +98,12 @@ def test_quality_sweep_runs_both_arms_reports_and_resumes(tmp_path, dataset_root
 
 def test_ablation_arms_and_budget_checks():
     config = quality.QualityConfig(
-        alphas=[-1, 8], uniform=True, lams=[0.2, 1.0], penalties=["l2"], union=True
+        alphas=[-1, 8],
+        uniform=True,
+        lams=[0.2, 1.0],
+        penalties=["l2"],
+        union=True,
+        artifact_seeds=[1],
     )
     arms = quality.arms_for(config)
     assert [a.name for a in arms] == [
@@ -106,9 +115,11 @@ def test_ablation_arms_and_budget_checks():
         "lam0.2",
         "lam1",
         "penalty-l2",
+        "artifact-seed1",
         "mixing-union",
     ]
-    assert arms[-2].augment == {"penalty": "l2"} and arms[-1].mixing == "union"
+    assert arms[-3].augment == {"penalty": "l2"} and arms[-2].augment == {"seed": 1}
+    assert arms[-1].mixing == "union"
     assert arms[4].augment == {"candidates": "uniform"} and arms[0].data == "source"
     with pytest.raises(HipodeError, match="no repeats"):
         quality.arms_for(quality.QualityConfig(alphas=[1, 1]))
