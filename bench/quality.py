@@ -55,6 +55,7 @@ from hipode_pipeline.commands.common import (  # noqa: E402
     RootOption,
     user_errors,
 )
+from hipode_pipeline.data.transitions import SourceInfo, Transitions  # noqa: E402
 from hipode_pipeline.errors import DatasetNotFoundError, HipodeError  # noqa: E402
 from hipode_pipeline.files import write_bytes_atomic, write_json_atomic, write_text_atomic  # noqa: E402
 from hipode_pipeline.paths import use_datasets_root  # noqa: E402
@@ -185,6 +186,11 @@ def arms_for(config: QualityConfig) -> list[Arm]:
         Arm(f"penalty-{form}", "merged", {"penalty": form}, f"HIPODE, {form} value penalty")
         for form in config.penalties
     ]
+    if config.artifact_seed in config.artifact_seeds:
+        raise HipodeError(
+            f"--artifact-seeds: expected seeds other than {config.artifact_seed}, the hipode "
+            f"arm's own artifact seed, found {config.artifact_seeds}"
+        )
     arms += [
         Arm(f"artifact-seed{seed}", "merged", {"seed": seed}, f"HIPODE, stage-one seed {seed}")
         for seed in config.artifact_seeds
@@ -313,16 +319,14 @@ def run_specs(config: QualityConfig, root: Path) -> tuple[list[RunSpec], dict[st
         paths = {}
         for arm in arms:
             paths[arm.name] = prepare_artifact(task.name, arm, config, root)
-        source_rewards = load_source(config.source or task.name, root)[0].rewards
+        source = load_source(config.source or task.name, root)
         for arm in arms:
             artifact = paths[arm.name]
             described[task.name].append(
                 {
                     **asdict(arm),
                     "artifact": display_path(artifact),
-                    "synthetic": None
-                    if artifact is None
-                    else synthetic_stats(artifact, source_rewards),
+                    "synthetic": None if artifact is None else synthetic_stats(artifact, source),
                 }
             )
         for seed in config.seeds:
@@ -426,15 +430,17 @@ def curve_mean(run: dict[str, Any]) -> float:
     return statistics.fmean(point[1] for point in run["curve"])
 
 
-def synthetic_stats(artifact: Path, source_rewards: np.ndarray) -> dict[str, Any]:
+def synthetic_stats(artifact: Path, source: tuple[Transitions, SourceInfo]) -> dict[str, Any]:
     """What an arm's synthetic data is: its rewards against the real rewards at the same source
     states, its dynamics error, terminal share and novelty (from stage one's summary)."""
     import json
 
     from hipode_pipeline.artifact import read_artifact
     from hipode_pipeline.augment import summary_path
+    from hipode_pipeline.merge import check_pair
 
     data = read_artifact(artifact)
+    check_pair(*source, data)  # source_index must index this very source
     rewards = data.transitions.rewards
     summary = summary_path(artifact)
     novelty = json.loads(summary.read_text()).get("novelty_mean") if summary.is_file() else None
@@ -442,7 +448,7 @@ def synthetic_stats(artifact: Path, source_rewards: np.ndarray) -> dict[str, Any
         "rows": len(rewards),
         "reward_mean": float(rewards.mean()),
         "source_reward_mean_same_states": float(
-            source_rewards[data.diagnostics["source_index"]].mean()
+            source[0].rewards[data.diagnostics["source_index"]].mean()
         ),
         "dynamics_error_median": float(np.median(data.diagnostics["dynamics_error"])),
         "terminal_fraction": float(data.transitions.terminals.mean()),

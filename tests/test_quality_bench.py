@@ -8,12 +8,12 @@ import sys
 from pathlib import Path
 
 import pytest
-from test_merge import write_source
+from test_merge import write_source, write_synthetic
 from typer.testing import CliRunner
 
 from hipode_pipeline.artifact import read_artifact, read_manifest
 from hipode_pipeline.data.load import load_source
-from hipode_pipeline.errors import HipodeError
+from hipode_pipeline.errors import DataFormatError, HipodeError
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
 import quality  # noqa: E402
@@ -121,6 +121,8 @@ def test_ablation_arms_and_budget_checks():
     assert arms[-3].augment == {"penalty": "l2"} and arms[-2].augment == {"seed": 1}
     assert arms[-1].mixing == "union"
     assert arms[4].augment == {"candidates": "uniform"} and arms[0].data == "source"
+    with pytest.raises(HipodeError, match="artifact-seeds"):
+        quality.arms_for(quality.QualityConfig(artifact_seeds=[0]))  # the hipode arm itself
     with pytest.raises(HipodeError, match="no repeats"):
         quality.arms_for(quality.QualityConfig(alphas=[1, 1]))
     with pytest.raises(HipodeError, match="divisor"):
@@ -147,3 +149,13 @@ def test_ray_engine_without_ray_names_the_install(monkeypatch):
     spec = quality.RunSpec("hopper-m-r", "eta0", "source", 0.0, 0, 10, 10, 1, "out", "root")
     with pytest.raises(HipodeError, match=r"pip install 'hipode-pipeline\[ray\]'"):
         next(quality.run_ray([spec], None, 1))
+
+
+def test_synthetic_stats_refuse_an_artifact_of_another_source(tmp_path):
+    source = write_source(tmp_path / "source.hdf5")
+    other = write_source(tmp_path / "other.hdf5", seed=1)
+    write_synthetic(tmp_path / "art.hdf5", source)
+    stats = quality.synthetic_stats(tmp_path / "art.hdf5", load_source(str(source)))
+    assert stats["rows"] == 20
+    with pytest.raises(DataFormatError, match="sha256"):
+        quality.synthetic_stats(tmp_path / "art.hdf5", load_source(str(other)))
