@@ -271,7 +271,9 @@ def prepare_artifact(task_name: str, arm: Arm, config: QualityConfig, root: Path
     }
     overrides = {"seed": config.artifact_seed, **(arm.augment or {})}
     if all(defaults[key] == value for key, value in overrides.items()):
-        path = config.artifact or default_artifact_path(task.name, root=root)
+        path = config.artifact or default_artifact_path(
+            task.name, seed=config.artifact_seed, root=root
+        )
         if arm.augment:
             console.err.print(f"{task.name} {arm.name}: the paper's setting; shares {path}")
         if path.is_file():
@@ -730,6 +732,8 @@ def command_line(config: QualityConfig) -> str:
     if config.penalties:
         args += ["--penalty", ",".join(config.penalties)]
     args += ["--union"] if config.union else []
+    if config.artifact_seed:
+        args += ["--artifact-seed", str(config.artifact_seed)]
     if config.artifact_seeds:
         args += ["--artifact-seeds", ",".join(str(seed) for seed in config.artifact_seeds)]
     args += [] if config.baseline_arms else ["--no-baselines"]
@@ -869,6 +873,13 @@ def main(
         str,
         typer.Option("--lam", help="Ablation: comma-separated selecting rates λ, e.g. 0.2,1.0."),
     ] = "",
+    artifact_seed: Annotated[
+        int,
+        typer.Option(
+            "--artifact-seed",
+            help="Stage-one seed of the hipode arm's artifact and of every artifact built here.",
+        ),
+    ] = 0,
     artifact_seeds: Annotated[
         str,
         typer.Option(
@@ -924,6 +935,7 @@ def main(
         lams=parse_list(lam, float, "--lam"),
         penalties=parse_list(penalty, str, "--penalty"),
         union=union,
+        artifact_seed=artifact_seed,
         artifact_seeds=parse_list(artifact_seeds, int, "--artifact-seeds"),
         baseline_arms=not no_baselines,
         source=source,

@@ -123,6 +123,10 @@ def test_ablation_arms_and_budget_checks():
     assert arms[4].augment == {"candidates": "uniform"} and arms[0].data == "source"
     with pytest.raises(HipodeError, match="artifact-seeds"):
         quality.arms_for(quality.QualityConfig(artifact_seeds=[0]))  # the hipode arm itself
+    with pytest.raises(HipodeError, match="other than 1"):
+        quality.arms_for(quality.QualityConfig(artifact_seed=1, artifact_seeds=[0, 1]))
+    command = quality.command_line(quality.QualityConfig(artifact_seed=1, artifact_seeds=[2]))
+    assert "--artifact-seed 1 --artifact-seeds 2" in command
     with pytest.raises(HipodeError, match="no repeats"):
         quality.arms_for(quality.QualityConfig(alphas=[1, 1]))
     with pytest.raises(HipodeError, match="divisor"):
