@@ -22,6 +22,7 @@ the dataset root at the same paths).
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import platform
@@ -435,8 +436,6 @@ def curve_mean(run: dict[str, Any]) -> float:
 def synthetic_stats(artifact: Path, source: tuple[Transitions, SourceInfo]) -> dict[str, Any]:
     """What an arm's synthetic data is: its rewards against the real rewards at the same source
     states, its dynamics error, terminal share and novelty (from stage one's summary)."""
-    import json
-
     from hipode_pipeline.artifact import read_artifact
     from hipode_pipeline.augment import summary_path
     from hipode_pipeline.merge import check_pair

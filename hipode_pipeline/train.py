@@ -380,14 +380,20 @@ def differing_settings(run_dir: Path, expected: dict[str, Any]) -> list[str]:
     ]
 
 
-def finished_scores(run_dir: Path, steps: int, expected: dict[str, Any]) -> dict[str, Any] | None:
-    """scores.json of a run in `run_dir` finished to at least `steps` updates; None if there is
-    none yet. Read-only; a finished run whose settings differ from `expected` is refused."""
+def _scores_if_finished(run_dir: Path, steps: int) -> dict[str, Any] | None:
+    """scores.json of a run finished to at least `steps` updates; None if unfinished or absent."""
     scores_path = run_dir / "scores.json"
     if not scores_path.is_file():
         return None
     scores = json.loads(scores_path.read_text())
-    if scores.get("steps", 0) < steps:
+    return scores if scores.get("steps", 0) >= steps else None
+
+
+def finished_scores(run_dir: Path, steps: int, expected: dict[str, Any]) -> dict[str, Any] | None:
+    """scores.json of a run in `run_dir` finished to at least `steps` updates; None if there is
+    none yet. Read-only; a finished run whose settings differ from `expected` is refused."""
+    scores = _scores_if_finished(run_dir, steps)
+    if scores is None:
         return None  # unfinished at this budget: run_training continues it
     differing = differing_settings(run_dir, expected)
     if differing:
@@ -414,7 +420,7 @@ def _prepare_run_dir(
             f"{run_dir} holds a run with other settings ({', '.join(differing)} differ); "
             "pass --force to replace it or --out for another folder"
         )
-    if finished_scores(run_dir, steps, {}) is not None:
+    if _scores_if_finished(run_dir, steps) is not None:
         raise OverwriteError(
             f"{run_dir} already finished {steps} steps (see scores.json); "
             "pass --force to train again"
