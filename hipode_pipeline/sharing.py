@@ -48,8 +48,13 @@ def export_artifact(artifact: Path, out: Path, *, force: bool = False) -> dict[s
     _refuse_existing([out, sidecar_path(out)], force)
     require_valid(artifact)
     digest = _copy_checked(artifact, out, expected_sha256=file_sha256(artifact))
+    return {"out": str(out), **_write_sidecar(out, digest)}
+
+
+def _write_sidecar(out: Path, digest: str) -> dict[str, str]:
+    """`out.sha256` in sha256sum's format, so `sha256sum -c` checks a shared copy."""
     write_text_atomic(sidecar_path(out), f"{digest}  {out.name}\n")
-    return {"out": str(out), "sha256": digest, "sidecar": str(sidecar_path(out))}
+    return {"sha256": digest, "sidecar": str(sidecar_path(out))}
 
 
 def export_d4rl(
@@ -68,9 +73,7 @@ def export_d4rl(
     _refuse_existing([out, sidecar_path(out)], force)
     require_valid(artifact)
     summary = merge_files(source_spec, artifact, out, root=root, force=force)
-    digest = file_sha256(out)
-    write_text_atomic(sidecar_path(out), f"{digest}  {out.name}\n")
-    return {**summary, "sha256": digest, "sidecar": str(sidecar_path(out))}
+    return {**summary, **_write_sidecar(out, file_sha256(out))}
 
 
 def import_artifact(path: Path, *, root: Path | None = None, force: bool = False) -> dict[str, Any]:
