@@ -307,7 +307,6 @@ def prepare_artifact(task_name: str, arm: Arm, config: QualityConfig, root: Path
 
 def run_specs(config: QualityConfig, root: Path) -> tuple[list[RunSpec], dict[str, list[dict]]]:
     """Every (task, arm, seed) run, seeds interleaved so paired runs finish close together."""
-    from hipode_pipeline.artifact import read_manifest
     from hipode_pipeline.data.load import load_source
 
     if (config.source or config.artifact) and len(config.tasks) != 1:
@@ -323,13 +322,17 @@ def run_specs(config: QualityConfig, root: Path) -> tuple[list[RunSpec], dict[st
         for arm in arms:
             paths[arm.name] = prepare_artifact(task.name, arm, config, root)
         source = load_source(config.source or task.name, root)
+        # arms that share an artifact (the paper's setting) read it once
+        stats = {
+            path: synthetic_stats(path, source) for path in set(paths.values()) if path is not None
+        }
         for arm in arms:
             artifact = paths[arm.name]
             described[task.name].append(
                 {
                     **asdict(arm),
                     "artifact": display_path(artifact),
-                    "synthetic": None if artifact is None else synthetic_stats(artifact, source),
+                    "synthetic": stats.get(artifact),
                 }
             )
         for seed in config.seeds:
@@ -349,9 +352,7 @@ def run_specs(config: QualityConfig, root: Path) -> tuple[list[RunSpec], dict[st
                         root=str(root),
                         source=config.source,
                         artifact=None if artifact is None else str(artifact.resolve()),
-                        artifact_checksum=None
-                        if artifact is None
-                        else read_manifest(artifact).get("checksum"),
+                        artifact_checksum=None if artifact is None else stats[artifact]["checksum"],
                         device=config.device,
                         threads=config.threads,
                         force=config.force,
@@ -446,6 +447,7 @@ def synthetic_stats(artifact: Path, source: tuple[Transitions, SourceInfo]) -> d
     summary = summary_path(artifact)
     novelty = json.loads(summary.read_text()).get("novelty_mean") if summary.is_file() else None
     return {
+        "checksum": data.manifest.get("checksum"),
         "rows": len(rewards),
         "reward_mean": float(rewards.mean()),
         "source_reward_mean_same_states": float(
