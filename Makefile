@@ -5,11 +5,13 @@ BIN := $(VENV)/bin
 TORCH_VERSION := 2.13.0
 STAMP := $(VENV)/.installed
 TASK ?= hopper-m-r
+# the learner whose table row stage one builds and stage two trains: td3bc | iql | cql
+LEARNER ?= td3bc
 ARGS ?=
 # Torch's worker threads spin on a busy 2-core machine; passive waiting keeps them polite.
 export OMP_WAIT_POLICY ?= PASSIVE
 
-.PHONY: setup test collect augment train datasets bench quality lint clean-venv
+.PHONY: setup test collect augment train datasets bench quality sweep lint clean-venv
 
 setup: $(STAMP)
 
@@ -17,7 +19,7 @@ $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	# torch pinned to the CPU build when absent: an unpinned torch pulls gigabytes of CUDA packages
 	$(BIN)/python -c "import torch" 2>/dev/null || $(BIN)/pip install -q "torch==$(TORCH_VERSION)"
-	$(BIN)/pip install -q -e ".[dev,plots]"
+	$(BIN)/pip install -q -e ".[dev,plots,ray]"
 	touch $(STAMP)
 
 test: $(STAMP)
@@ -27,10 +29,10 @@ collect: $(STAMP)
 	$(BIN)/hipode collect $(TASK) $(ARGS)
 
 augment: $(STAMP)
-	$(BIN)/hipode augment $(TASK) $(ARGS)
+	$(BIN)/hipode augment $(TASK) --learner $(LEARNER) $(ARGS)
 
 train: $(STAMP)
-	$(BIN)/hipode train $(TASK) $(ARGS)
+	$(BIN)/hipode train $(TASK) --learner $(LEARNER) $(ARGS)
 
 datasets: $(STAMP)
 	$(BIN)/hipode datasets list $(ARGS)
@@ -47,6 +49,10 @@ bench: $(STAMP)
 # the quality sweep (hours on a CPU; resumable): make quality ARGS="--tasks hopper-m-r --steps 100000"
 quality: $(STAMP)
 	$(BIN)/python bench/quality.py $(ARGS)
+
+# any sweep (hipode sweep --help): make sweep ARGS="--tasks hopper-m-r --seeds 0,1,2,3,4"
+sweep: $(STAMP)
+	$(BIN)/hipode sweep $(ARGS)
 
 lint: $(STAMP)
 	$(BIN)/ruff check hipode_pipeline tests bench

@@ -1,57 +1,6 @@
-"""What the benchmarks record about the machine they ran on: CPU model and load while running.
+"""What the benchmarks record about the machine they ran on: the package's own helpers, which
+`hipode sweep` uses too (kept importable here as `from machine import ...`)."""
 
-The machines here are shared, so every figure is recorded beside the load it was taken under.
-"""
+from hipode_pipeline.sweep.machine import LoadSampler, cpu_name, load_average
 
-from __future__ import annotations
-
-import os
-import platform
-import statistics
-import threading
-from pathlib import Path
-
-
-def cpu_name() -> str:
-    """The CPU model from /proc/cpuinfo, else whatever platform knows."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def load_average() -> str:
-    """The 1, 5 and 15-minute load averages as text."""
-    return " ".join(f"{x:.2f}" for x in os.getloadavg())
-
-
-class LoadSampler:
-    """The 1-minute load average every `every` seconds while the `with` block runs."""
-
-    def __init__(self, every: float = 5.0):
-        self.every, self.samples = every, [os.getloadavg()[0]]
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-
-    def _run(self) -> None:
-        while not self._stop.wait(self.every):
-            self.samples.append(os.getloadavg()[0])
-
-    def __enter__(self) -> LoadSampler:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self._stop.set()
-        self._thread.join()
-
-    def stats(self) -> dict[str, float]:
-        return {
-            "min": min(self.samples),
-            "mean": statistics.fmean(self.samples),
-            "max": max(self.samples),
-            "samples": len(self.samples),
-        }
+__all__ = ["LoadSampler", "cpu_name", "load_average"]

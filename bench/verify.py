@@ -5,7 +5,7 @@ Two runs of the library call the command makes: the first trains the baseline's 
 unless it is cached already (the record says which), the second loads it, so its time is what a
 repeated `hipode verify` costs. The machine may be shared: the load average is recorded.
 
-    python bench/verify.py [--artifact datasets/artifacts/hopper-m-r-td3bc-seed0.hdf5]
+    python bench/verify.py [--artifact datasets/artifacts/<hopper-m-r's TD3+BC artifact>]
                            [--sample 2000] [--seed 0] [--threads 1]
 
 Writes bench/results/verify.json and bench/results/verify.md; the report and plot themselves
@@ -47,7 +47,10 @@ def within_at(checks, reward_std_tolerance_scale: float, tolerance: float) -> fl
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
-        "--artifact", default=str(REPO / "datasets/artifacts/hopper-m-r-td3bc-seed0.hdf5")
+        "--artifact",
+        default=str(
+            REPO / "datasets/artifacts/hopper-m-r-eta0.5-lam0.2-n10-alpha1-sigma1-seed0.hdf5"
+        ),
     )
     parser.add_argument("--root", default=str(REPO / "datasets"))
     parser.add_argument("--sample", type=int, default=2000)

@@ -2,7 +2,8 @@
 
 One flat HDF5 file with D4RL key names (observations, actions, rewards, next_observations,
 terminals, timeouts), per-transition diagnostics beside them, and a JSON manifest in the root
-attribute `manifest`. Only numeric datasets: no pickle, nothing in the file is executed.
+attribute `manifest` that carries the content checksum and its own digest. Only numeric
+datasets: no pickle, nothing in the file is executed.
 """
 
 from __future__ import annotations
@@ -16,13 +17,12 @@ import h5py
 import numpy as np
 
 from hipode_pipeline.data.transitions import FIELDS, Transitions
-from hipode_pipeline.errors import DatasetNotFoundError, OverwriteError
+from hipode_pipeline.errors import DataFormatError, OverwriteError
 from hipode_pipeline.files import atomic_path, file_sha256
-from hipode_pipeline.paths import datasets_root
-from hipode_pipeline.tasks import get_task
 from hipode_pipeline.validation import (  # re-exported: the schema's constants live with its rules
     DIAGNOSTIC_DTYPES,
     MANIFEST_ATTR,
+    MANIFEST_CHECKSUM_KEY,
     REQUIRED_DIAGNOSTICS,
     SCHEMA_NAME,
     SCHEMA_VERSION,
@@ -30,20 +30,26 @@ from hipode_pipeline.validation import (  # re-exported: the schema's constants 
     Findings,
     check_file,
     content_checksum,
+    manifest_checksum,
+    nonfinite_to_null,
+    require_regular_file,
+    seal_manifest,
 )
 
 __all__ = [
     "DIAGNOSTIC_DTYPES",
     "MANIFEST_ATTR",
+    "MANIFEST_CHECKSUM_KEY",
     "REQUIRED_DIAGNOSTICS",
     "SCHEMA_NAME",
     "SCHEMA_VERSION",
     "TRANSITION_DTYPES",
     "Artifact",
     "content_checksum",
-    "default_artifact_path",
+    "manifest_checksum",
     "read_artifact",
     "read_manifest",
+    "seal_manifest",
     "write_artifact",
 ]
 
@@ -63,15 +69,6 @@ class Artifact:
         return len(self.transitions)
 
 
-def default_artifact_path(
-    task_name: str, *, learner: str = "td3bc", seed: int = 0, root: Path | None = None
-) -> Path:
-    """Where `hipode augment TASK` writes by default:
-    <dataset root>/artifacts/<task>-<learner>-seed<seed>.hdf5."""
-    task = get_task(task_name)
-    return (root or datasets_root()) / "artifacts" / f"{task.name}-{learner}-seed{seed}.hdf5"
-
-
 def write_artifact(
     path: Path,
     transitions: Transitions,
@@ -80,44 +77,52 @@ def write_artifact(
     *,
     force: bool = False,
 ) -> dict[str, Any]:
-    """Write the artifact atomically and return the manifest as stored (schema and checksum added).
+    """Write the artifact atomically and return the manifest as stored (schema, checksum and
+    manifest digest added; values as JSON holds them, a non-finite number as null).
 
-    Refuses an existing `path` unless `force`. The file appears only once complete: it is
-    written to a temporary file in the same folder and renamed over `path`.
+    Refuses an existing `path` unless `force`, and zero transitions. The file appears only once
+    complete: it is written to a temporary file in the same folder and renamed over `path`.
     """
     path = Path(path)
     if path.exists() and not force:
         raise OverwriteError(f"{path} already exists; pass --force to replace it")
+    if len(transitions) == 0:
+        raise DataFormatError(
+            path, "observations", "at least one synthetic transition to write", "0 rows"
+        )
     arrays = {**transitions.arrays(), **_checked_diagnostics(diagnostics, len(transitions), path)}
     stored = {
         **manifest,
         "schema": {"name": SCHEMA_NAME, "version": SCHEMA_VERSION},
         "checksum": content_checksum(arrays),
     }
-    with atomic_path(path) as temp, h5py.File(temp, "w") as f:
+    # the digest is over what a reader parses back, so numpy scalars, paths and tuples go first
+    as_json = json.loads(json.dumps(stored, sort_keys=True, default=_json_default))
+    stored = seal_manifest(nonfinite_to_null(as_json))
+    text = json.dumps(stored, sort_keys=True, allow_nan=False)
+    with atomic_path(path, replace=force) as temp, h5py.File(temp, "w") as f:
         for name, array in arrays.items():
             f.create_dataset(name, data=array)
-        f.attrs[MANIFEST_ATTR] = json.dumps(stored, sort_keys=True, default=_json_default)
+        f.attrs[MANIFEST_ATTR] = text
     return stored
 
 
 def read_manifest(path: Path) -> dict[str, Any]:
-    """Only the manifest (cheap: no arrays are read), after checking the schema name and version."""
-    path = Path(path)
-    if not path.is_file():
-        raise DatasetNotFoundError(f"{path}: no such artifact file")
+    """Only the manifest (cheap: no arrays are read), after checking it: strict JSON, schema
+    name and version, key types and its digest. The content checksum needs the arrays: only
+    `read_artifact` checks it."""
+    path = require_regular_file(path)
     manifest, _ = check_file(path, Findings(path, strict=True), read_arrays=False)
     return manifest
 
 
 def read_artifact(path: Path) -> Artifact:
-    """Read and verify an artifact: schema name and major version, every dataset's presence,
-    dtype and shape, finiteness, and the content checksum. The first failure is a
-    DataFormatError naming the file, the field and what was expected (`validate_artifact` in
-    hipode_pipeline.validation runs the same rules and lists them all)."""
-    path = Path(path)
-    if not path.is_file():
-        raise DatasetNotFoundError(f"{path}: no such artifact file")
+    """Read and verify an artifact: schema name and major version, the manifest's types and
+    digest, every dataset's presence, dtype and shape, at least one row, finiteness, and the
+    content checksum. The first failure is a DataFormatError naming the file, the field and
+    what was expected (`validate_artifact` in hipode_pipeline.validation runs the same rules
+    and lists them all)."""
+    path = require_regular_file(path)
     manifest, arrays = check_file(path, Findings(path, strict=True), read_arrays=True)
     transitions = Transitions(**{name: arrays[name] for name in FIELDS})
     diagnostics = {name: array for name, array in arrays.items() if name not in FIELDS}
@@ -154,7 +159,7 @@ def _json_default(value: Any) -> Any:
 
 
 # manifest entries `hipode inspect` shows first, in this order
-HIGHLIGHT_KEYS = ("schema", "task", "env_id", "created_utc", "checksum")
+HIGHLIGHT_KEYS = ("schema", "task", "env_id", "created_utc", "checksum", "manifest_checksum")
 
 
 def inspect_artifact(path: Path) -> dict[str, Any]:

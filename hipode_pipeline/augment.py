@@ -1,16 +1,15 @@
-"""Stage one: HIPODE's generation (Algorithm 1, lines 4-11) and its orchestration.
+"""Stage one's driver: load -> train or reuse the generators -> generate -> write the artifact.
 
-For batches of source states: n candidate next states from the state-transition model, the one
-with the highest value, an action and a reward from the inverse models, a dynamics-model check,
-and the lambda fraction with the smallest dynamics error kept, until exactly round(eta * N)
-transitions survived. Everything runs batched on z-scored states; the output holds raw values.
+The algorithm itself is `hipode_pipeline.generate` (no file I/O); this module decides what is
+asked for (a learner's table row and overrides), whether an existing file already answers it,
+and what the manifest records.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
-import math
 import time
 from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
@@ -20,14 +19,9 @@ from typing import Any
 import numpy as np
 import torch
 
-import hipode_pipeline
 from hipode_pipeline import console
-from hipode_pipeline.artifact import (
-    SCHEMA_VERSION,
-    default_artifact_path,
-    read_artifact,
-    write_artifact,
-)
+from hipode_pipeline.artifact import SCHEMA_VERSION, read_artifact, write_artifact
+from hipode_pipeline.contract import ArtifactSettings, default_artifact_path, table_row
 from hipode_pipeline.data.load import load_source
 from hipode_pipeline.data.transitions import SourceInfo, Transitions
 from hipode_pipeline.device import select_device
@@ -38,298 +32,23 @@ from hipode_pipeline.errors import (
     OverwriteError,
     SettingError,
 )
-from hipode_pipeline.files import file_sha256, write_json_atomic
+from hipode_pipeline.evaluate import check_data_fits_env
+from hipode_pipeline.files import check_output_file, file_sha256, output_lock, write_json_atomic
+from hipode_pipeline.generate import (
+    GenerationConfig,
+    GenerationResult,
+    generate,
+    novelty,
+    synthetic_count,
+)
 from hipode_pipeline.models.generators import GeneratorConfig, Generators, train_generators
 from hipode_pipeline.paths import use_datasets_root
-from hipode_pipeline.tasks import Task, get_task
-from hipode_pipeline.versions import package_versions
+from hipode_pipeline.seeding import SEED_MAX, derive_seed
+from hipode_pipeline.tasks import LEARNERS, Task, get_task
+from hipode_pipeline.threads import stage_one_threads, torch_threads
+from hipode_pipeline.versions import ARTIFACT_CODE, code_digest, package_versions
 
-SELECTIONS = ("batch", "global")
-CANDIDATE_SOURCES = ("model", "uniform")
-PROFILES = ("full", "quick")
 COUNTED = ("source_states_drawn", "next_states_sampled", "nonfinite_dropped", "kept")
-
-
-@dataclass(frozen=True)
-class GenerationConfig:
-    """How synthetic transitions are drawn and selected (the generators' own settings live in
-    GeneratorConfig)."""
-
-    eta: float = 0.2  # synthetic rate: round(eta * N) transitions are kept
-    lam: float = 0.2  # selecting rate: fraction of candidates kept by dynamics consistency
-    n: int = 10  # candidate next states per source state
-    batch_size: int = 2048  # source states per generation batch: the unit of top-lambda selection
-    selection: str = (
-        "batch"  # "batch": top-lambda per generation batch (as CABI); "global": over all
-    )
-    candidates: str = (
-        "model"  # "model": state-transition CVAE; "uniform": source bounding box (Table 12)
-    )
-    dynamics_mean: bool = (
-        False  # check against the ensemble mean instead of a random member's sample
-    )
-
-    def __post_init__(self) -> None:
-        checks = {
-            "eta": (self.eta > 0, "a positive rate"),
-            "lam": (0 < self.lam <= 1, "a fraction in (0, 1]"),
-            "n": (self.n >= 1, "a positive integer"),
-            "batch_size": (self.batch_size >= 1, "a positive integer"),
-            "selection": (self.selection in SELECTIONS, f"one of {SELECTIONS}"),
-            "candidates": (self.candidates in CANDIDATE_SOURCES, f"one of {CANDIDATE_SOURCES}"),
-        }
-        for name, (ok, expected) in checks.items():
-            if not ok:
-                raise SettingError(
-                    f"generation setting '{name}': expected {expected}, "
-                    f"found {getattr(self, name)!r}"
-                )
-
-
-@dataclass(frozen=True, eq=False)
-class GenerationResult:
-    """The kept synthetic transitions (raw values), their diagnostics and what it took."""
-
-    transitions: Transitions  # round(eta * N) synthetic transitions
-    diagnostics: dict[str, np.ndarray]  # per-transition (M,) arrays, float32 or int64
-    counts: dict[str, int]  # source states drawn, next states sampled, non-finite dropped, kept
-    next_states_normalized: np.ndarray  # (M, ds) the kept s~' in z-scored units (for novelty)
-
-
-def synthetic_count(eta: float, n_source: int) -> int:
-    """round(eta * N) with halves rounded up (Python's round() would round them to even)."""
-    return int(math.floor(eta * n_source + 0.5))
-
-
-def derive_seed(seed: int, stream: str) -> int:
-    """An independent 63-bit seed per named random stream of one run."""
-    return int.from_bytes(hashlib.sha256(f"{seed}:{stream}".encode()).digest()[:8], "little") >> 1
-
-
-class SourceOrder:
-    """The seeded order in which source states are drawn: a fresh permutation per pass, so no
-    state repeats within a pass, and passes follow each other as long as generation needs."""
-
-    def __init__(self, n_source: int, seed: int):
-        self.n_source = n_source
-        self._generator = torch.Generator().manual_seed(derive_seed(seed, "source-order"))
-        self._pending = np.empty(0, dtype=np.int64)
-
-    def take(self, count: int) -> np.ndarray:
-        """The next `count` source indices (int64)."""
-        while self._pending.size < count:
-            permutation = torch.randperm(self.n_source, generator=self._generator).numpy()
-            self._pending = np.concatenate([self._pending, permutation])
-        taken, self._pending = self._pending[:count], self._pending[count:]
-        return taken
-
-
-def keep_count(finite: int, lam: float) -> int:
-    """How many of a batch's finite candidates the lambda fraction keeps (at least one)."""
-    return min(finite, max(1, math.floor(lam * finite + 0.5))) if finite > 0 else 0
-
-
-def select_top_lambda(errors: torch.Tensor, keep: int) -> torch.Tensor:
-    """Indices of the `keep` smallest errors, smallest first; ties go to the earlier row."""
-    return torch.sort(errors, stable=True).indices[:keep]
-
-
-def _evaluate_batch(
-    generators: Generators,
-    states_norm: torch.Tensor,
-    config: GenerationConfig,
-    sampling: torch.Generator,
-    box: tuple[torch.Tensor, torch.Tensor] | None,
-) -> dict[str, torch.Tensor]:
-    """Algorithm 1 lines 6-9 for one batch of source states; rows whose candidate is not finite
-    anywhere are marked in `finite` (their values are placeholders)."""
-    rows, ds = states_norm.shape
-    if box is None:
-        candidates = generators.state_transition.sample(states_norm, config.n, generator=sampling)
-    else:
-        low, high = box
-        uniform = torch.rand((rows, config.n, ds), generator=sampling, device=states_norm.device)
-        candidates = low + (high - low) * uniform
-    values = generators.value(candidates)
-    candidate_finite = torch.isfinite(candidates).all(-1) & torch.isfinite(values)
-    # a non-finite candidate can never win the argmax; a row with none finite is dropped below
-    best = torch.where(candidate_finite, values, -torch.inf).argmax(dim=1)
-    arange = torch.arange(rows, device=states_norm.device)
-    has_finite = candidate_finite[arange, best]
-    next_norm = torch.where(has_finite[:, None], candidates[arange, best], 0.0)
-    cond = torch.cat([states_norm, next_norm], dim=1)
-    actions = generators.inverse_action.sample(cond, 1, generator=sampling)[:, 0]
-    rewards = generators.inverse_reward.sample(cond, 1, generator=sampling)[:, 0, 0]
-    dyna_next, dyna_rewards = generators.dynamics.sample(
-        states_norm, actions, generator=sampling, use_mean=config.dynamics_mean
-    )
-    errors = torch.linalg.vector_norm(dyna_next - next_norm, dim=1)
-    finite = (
-        has_finite
-        & torch.isfinite(actions).all(1)
-        & torch.isfinite(rewards)
-        & torch.isfinite(errors)
-        & torch.isfinite(dyna_rewards)
-    )
-    return {
-        "next_norm": next_norm,
-        "value": values[arange, best],
-        "candidate_index": best,
-        "actions": actions,
-        "rewards": rewards,
-        "dynamics_reward": dyna_rewards,
-        "errors": errors,
-        "finite": finite,
-        "nonfinite_next_states": (~candidate_finite).sum(),
-    }
-
-
-def generate(
-    generators: Generators,
-    source: Transitions,
-    config: GenerationConfig,
-    *,
-    env_id: str | None,
-    seed: int = 0,
-    show_progress: bool = True,
-) -> GenerationResult:
-    """Draw, rank and keep exactly round(eta * N) synthetic transitions from `source`.
-
-    `env_id` picks the termination rule applied to each kept s~' (raw). Same generators, source,
-    config and seed give identical arrays on the same device.
-    """
-    device = generators.device
-    normalizer = generators.normalizer
-    # fail before any work when the env has no known rule or the layout does not match it
-    terminal = termination_rule(env_id, source.obs_dim, origin=f"source (env {env_id})")
-    target = synthetic_count(config.eta, len(source))
-    if target < 1:
-        raise SettingError(
-            f"--eta {config.eta}: keeps no transition of the source's {len(source)}; "
-            f"expected eta >= {0.5 / len(source):.2g}"
-        )
-    source_norm = normalizer.normalize(torch.as_tensor(source.observations, device=device))
-    box = (
-        (source_norm.min(0).values, source_norm.max(0).values)
-        if config.candidates == "uniform"
-        else None
-    )
-    order = SourceOrder(len(source), seed)
-    sampling = torch.Generator(device=device).manual_seed(derive_seed(seed, "sampling"))
-    batch_size = min(config.batch_size, len(source))
-    # global selection needs a pool of target / lam finite candidates before it ranks them
-    pool_target = math.ceil(target / config.lam - 1e-9) if config.selection == "global" else target
-    parts: list[dict[str, torch.Tensor]] = []
-    counts = {
-        "source_states_drawn": 0,
-        "next_states_sampled": 0,
-        "nonfinite_next_states": 0,
-        "nonfinite_dropped": 0,
-    }
-    collected, batch_index, empty_batches = 0, 0, 0
-    started = time.perf_counter()
-    with console.progress(disable=not show_progress) as prog, torch.no_grad():
-        bar = prog.add_task("generate", total=pool_target, rate="", info="")
-        while collected < pool_target:
-            indices = order.take(batch_size)
-            batch = _evaluate_batch(
-                generators,
-                source_norm[torch.as_tensor(indices, device=device)],
-                config,
-                sampling,
-                box,
-            )
-            finite_rows = torch.nonzero(batch["finite"]).squeeze(1)
-            counts["source_states_drawn"] += batch_size
-            counts["next_states_sampled"] += batch_size * config.n
-            counts["nonfinite_next_states"] += int(batch["nonfinite_next_states"])
-            counts["nonfinite_dropped"] += batch_size - finite_rows.numel()
-            empty_batches = empty_batches + 1 if finite_rows.numel() == 0 else 0
-            if empty_batches >= 10:
-                raise RuntimeError(
-                    "ten generation batches in a row produced only non-finite candidates"
-                )
-            if config.selection == "global":
-                chosen = finite_rows
-            else:
-                # the last batch is drawn at full size and keeps only the r smallest errors it
-                # still needs: those are a subset of its own top-lambda, so selection is unchanged
-                keep = min(keep_count(finite_rows.numel(), config.lam), target - collected)
-                chosen = finite_rows[select_top_lambda(batch["errors"][finite_rows], keep)]
-            part = {
-                name: value[chosen]
-                for name, value in batch.items()
-                if name not in ("finite", "nonfinite_next_states")
-            }
-            part["source_index"] = torch.as_tensor(indices, device=device)[chosen]
-            part["batch_index"] = torch.full(
-                (chosen.numel(),), batch_index, dtype=torch.int64, device=device
-            )
-            part["error_rank"] = torch.arange(chosen.numel(), device=device)
-            parts.append({name: value.cpu() for name, value in part.items()})
-            collected += chosen.numel()
-            batch_index += 1
-            elapsed = time.perf_counter() - started
-            median_error = float(batch["errors"][chosen].median()) if chosen.numel() else math.nan
-            prog.update(
-                bar,
-                completed=min(collected, pool_target),
-                rate=console.rate_text(counts["source_states_drawn"], elapsed, "candidates"),
-                info=f"kept {min(collected, target):,}/{target:,}  median e {median_error:.3f}",
-            )
-    kept = {name: torch.cat([p[name] for p in parts]) for name in parts[0]}
-    if config.selection == "global":
-        ranked = select_top_lambda(kept["errors"], target)
-        kept = {name: value[ranked] for name, value in kept.items()}
-        kept["error_rank"] = torch.arange(target)
-    counts["candidates"] = counts["source_states_drawn"] - counts["nonfinite_dropped"]
-    counts["kept"] = target
-    return _as_result(kept, source, normalizer, terminal, counts)
-
-
-def _as_result(kept, source: Transitions, normalizer, terminal, counts) -> GenerationResult:
-    next_norm = kept["next_norm"].numpy().astype(np.float32)
-    next_raw = normalizer.denormalize(next_norm).astype(np.float32)
-    source_index = kept["source_index"].numpy().astype(np.int64)
-    transitions = Transitions(
-        observations=source.observations[source_index],
-        actions=kept["actions"].numpy().astype(np.float32),
-        rewards=kept["rewards"].numpy().astype(np.float32),
-        next_observations=next_raw,
-        terminals=terminal(next_raw),
-        timeouts=np.zeros(len(source_index), dtype=np.bool_),
-    )
-    diagnostics = {
-        "dynamics_error": kept["errors"].numpy().astype(np.float32),
-        "value": kept["value"].numpy().astype(np.float32),
-        "source_index": source_index,
-        "candidate_index": kept["candidate_index"].numpy().astype(np.int64),
-        "dynamics_reward": kept["dynamics_reward"].numpy().astype(np.float32),
-        "batch_index": kept["batch_index"].numpy().astype(np.int64),
-        "error_rank": kept["error_rank"].numpy().astype(np.int64),
-    }
-    return GenerationResult(transitions, diagnostics, counts, next_norm)
-
-
-def novelty(
-    synthetic_norm: np.ndarray,
-    source_norm: torch.Tensor,
-    *,
-    sample: int = 2000,
-    seed: int = 0,
-    chunk: int = 16384,
-) -> np.ndarray:
-    """L2 distance (z-scored units) from each of a seeded sample of synthetic next states to its
-    nearest source state, with the source scanned in chunks to bound memory."""
-    rng = np.random.default_rng(derive_seed(seed, "novelty"))
-    picked = rng.choice(len(synthetic_norm), size=min(sample, len(synthetic_norm)), replace=False)
-    queries = torch.as_tensor(synthetic_norm[np.sort(picked)], device=source_norm.device)
-    nearest = torch.full((len(queries),), torch.inf, device=source_norm.device)
-    with torch.no_grad():
-        for start in range(0, len(source_norm), chunk):
-            distances = torch.cdist(queries, source_norm[start : start + chunk])
-            nearest = torch.minimum(nearest, distances.min(dim=1).values)
-    return nearest.cpu().numpy()
 
 
 @dataclass
@@ -360,6 +79,8 @@ class AugmentSummary:
     content_checksum: str  # the manifest's checksum of the arrays (equal for equal requests)
     device: str  # torch device used
     profile: str  # generator profile
+    # the learner whose table row gave the defaults: {"learner", "table", "from_paper"}
+    table_row: dict[str, Any] = field(default_factory=dict)
     reused_artifact: bool = False  # the file already matched this request and was kept as is
 
     def to_dict(self) -> dict[str, Any]:
@@ -373,6 +94,7 @@ class AugmentSummary:
             ["source", f"{self.source_id} (sha256 {self.source_sha256[:16]})"],
             ["N (source transitions)", self.n_source],
             ["eta / lambda / n", f"{self.eta} / {self.lam} / {self.n}"],
+            ["defaults from", _table_text(self.table_row)],
             ["candidates drawn", self.source_states_drawn],
             ["next states sampled", self.next_states_sampled],
             ["non-finite dropped", self.nonfinite_dropped],
@@ -396,8 +118,9 @@ class AugmentSummary:
 
 
 @dataclass(frozen=True)
-class _Request:
-    """Everything that determines an artifact's arrays; equal requests give equal arrays."""
+class ArtifactRequest:
+    """Everything that determines an artifact's arrays: equal requests give equal arrays. The
+    learner that asked for it is not part of it (the manifest records its table row apart)."""
 
     task: str
     source_sha256: str
@@ -405,7 +128,7 @@ class _Request:
     generator_config: dict[str, Any]
     seed: int
     schema_version: str = SCHEMA_VERSION
-    code_version: str = field(default=hipode_pipeline.__version__)
+    code_digest: str = field(default_factory=lambda: code_digest(ARTIFACT_CODE))
 
     def key(self) -> str:
         return hashlib.sha256(
@@ -424,13 +147,16 @@ class _Request:
                     if value.get(k) != old.get(k)
                 ]
             elif value != old:
-                names.append(name)
+                names.append(
+                    "code (the package's stage-one code changed)" if name == "code_digest" else name
+                )
         return names
 
 
 def run_augment(
     task_name: str,
     *,
+    learner: str = "td3bc",
     source: str | None = None,
     eta: float | None = None,
     lam: float | None = None,
@@ -452,107 +178,185 @@ def run_augment(
     """Stage one end to end: load (collecting first if the task's own dataset is missing), train
     or reuse the generators, generate, write the artifact and its summary JSON.
 
-    Unset hyper-parameters take the task's Table 6 (TD3+BC) values. An existing artifact built
-    from the same request is verified and kept; any other existing file needs `force`.
+    Unset hyper-parameters take `learner`'s table row for the task (TD3+BC: Table 6, CQL:
+    Table 5, IQL: Table 7). An existing artifact built from the same request is verified and
+    kept; any other existing file needs `force`.
     """
-    seconds: dict[str, float] = {}
-    clock = time.perf_counter()
-    task = get_task(task_name)
-    root = use_datasets_root(root)
-    params = task.augment_params("td3bc")
-    generation = GenerationConfig(
-        eta=params.eta if eta is None else eta,
-        lam=params.lam if lam is None else lam,
-        n=params.n if n is None else n,
-        selection=selection,
-        candidates=candidates,
-        dynamics_mean=dynamics_mean,
-    )
-    overrides = {
-        "alpha": params.alpha if alpha is None else alpha,
-        "sigma": params.sigma if sigma is None else sigma,
-    }
-    if penalty is not None:
-        overrides["penalty"] = penalty
-    generator_config = GeneratorConfig.profile(profile, **overrides)
-    torch_device = select_device(device)
-    transitions, info = _load_or_collect(task, source, root, show_progress)
-    seconds["load"] = time.perf_counter() - clock
+    with contextlib.ExitStack() as held:
+        seconds: dict[str, float] = {}
+        clock = time.perf_counter()
+        task = get_task(task_name)
+        if learner not in LEARNERS:
+            raise SettingError(
+                f"--learner: expected one of {LEARNERS} (a learner with a table row in the paper), "
+                f"found {learner!r}"
+            )
+        params = task.augment_params(learner)
+        generation = GenerationConfig(
+            eta=params.eta if eta is None else eta,
+            lam=params.lam if lam is None else lam,
+            n=params.n if n is None else n,
+            selection=selection,
+            candidates=candidates,
+            dynamics_mean=dynamics_mean,
+        )
+        overrides = {
+            "alpha": params.alpha if alpha is None else alpha,
+            "sigma": params.sigma if sigma is None else sigma,
+        }
+        if penalty is not None:
+            overrides["penalty"] = penalty
+        generator_config = GeneratorConfig.profile(profile, **overrides)
+        check_seed(seed)
+        torch_device = select_device(device)
+        root = use_datasets_root(root)
+        if out is not None:
+            check_output_file(Path(out), "--out")
+        transitions, info = _load_or_collect(task, source, root, show_progress)
+        env_id = info.env_id or task.env_id
+        # the data must fit the task's env before minutes of training: rule, layout and row count
+        termination_rule(env_id, transitions.obs_dim, origin=f"source {info.id} (env {env_id})")
+        check_data_fits_env(env_id, transitions.obs_dim, transitions.act_dim, str(info.id))
+        synthetic_rows(generation.eta, len(transitions))
+        seconds["load"] = time.perf_counter() - clock
 
-    out = (
-        Path(out)
-        if out is not None
-        else default_artifact_path(task.name, learner="td3bc", seed=seed, root=root)
-    )
-    request = _Request(task.name, info.sha256, asdict(generation), generator_config.to_dict(), seed)
-    if out.exists() and not force:
-        return _reuse_existing(out, request, seconds)
+        settings = ArtifactSettings(
+            eta=generation.eta,
+            lam=generation.lam,
+            n=generation.n,
+            alpha=generator_config.alpha,
+            sigma=generator_config.sigma,
+            penalty=generator_config.penalty,
+            selection=generation.selection,
+            candidates=generation.candidates,
+            dynamics_mean=generation.dynamics_mean,
+            profile=profile,
+        )
+        own_source = source is None or source in (task.name, task.local_dataset_id)
+        out = (
+            Path(out)
+            if out is not None
+            else default_artifact_path(
+                task,
+                settings,
+                seed=seed,
+                root=root,
+                source_tag=None if own_source else info.sha256[:8],
+            )
+        )
+        request = ArtifactRequest(
+            task.name, info.sha256, asdict(generation), generator_config.to_dict(), seed
+        )
+        # held to the end: a second augment into `out` waits, then finds it up to date
+        held.enter_context(output_lock(out, command="hipode augment"))
+        if out.exists() and not force:
+            return _reuse_existing(out, request, seconds)
 
-    clock = time.perf_counter()
-    generators = train_generators(
-        transitions,
-        info.sha256,
-        generator_config,
-        cache_root=root / "cache" / "generators",
-        seed=seed,
-        device=torch_device,
-        show_progress=show_progress,
-    )
-    seconds["train"] = time.perf_counter() - clock
+        clock = time.perf_counter()
+        # each phase on the threads it was measured to want (collection sets its own)
+        with torch_threads(stage_one_threads("train")):
+            generators = train_generators(
+                transitions,
+                info.sha256,
+                generator_config,
+                cache_root=root / "cache" / "generators",
+                seed=seed,
+                device=torch_device,
+                show_progress=show_progress,
+            )
+        seconds["train"] = time.perf_counter() - clock
 
-    clock = time.perf_counter()
-    env_id = info.env_id or task.env_id
-    result = generate(
-        generators, transitions, generation, env_id=env_id, seed=seed, show_progress=show_progress
-    )
-    source_norm = generators.normalizer.normalize(
-        torch.as_tensor(transitions.observations, device=generators.device)
-    )
-    distances = novelty(result.next_states_normalized, source_norm, seed=seed)
-    seconds["generate"] = time.perf_counter() - clock
+        clock = time.perf_counter()
+        with torch_threads(stage_one_threads("generate")):
+            result = generate(
+                generators,
+                transitions,
+                generation,
+                env_id=env_id,
+                seed=seed,
+                show_progress=show_progress,
+            )
+            source_norm = generators.normalizer.normalize(
+                torch.as_tensor(transitions.observations, device=generators.device)
+            )
+            distances = novelty(result.next_states_normalized, source_norm, seed=seed)
+        seconds["generate"] = time.perf_counter() - clock
 
-    clock = time.perf_counter()
-    errors = result.diagnostics["dynamics_error"]
-    statistics = {
-        "dynamics_error_mean": float(errors.mean()),
-        "dynamics_error_median": float(np.median(errors)),
-        "novelty_mean": float(distances.mean()),
-        "novelty_median": float(np.median(distances)),
-        "novelty_sample": int(distances.size),
-        "terminals": int(result.transitions.terminals.sum()),
-    }
-    # the summary's fields that describe the file's content; the manifest keeps them too
-    record = {
-        "task": task.name,
-        "source_id": info.id,
-        "source_sha256": info.sha256,
-        "n_source": len(transitions),
-        "eta": generation.eta,
-        "lam": generation.lam,
-        "n": generation.n,
-        **{key: result.counts[key] for key in COUNTED},
-        **statistics,
-        "generators_cached": all(
-            r.get("cached", False) for r in generators.training_report.values()
-        ),
-        "device": str(generators.device),
-        "profile": profile,
-    }
-    manifest = _manifest(
-        task, info, env_id, generation, generator_config, generators, seed, result, record, request
-    )
-    stored = write_artifact(out, result.transitions, result.diagnostics, manifest, force=force)
-    seconds["write"] = time.perf_counter() - clock
-    seconds["total"] = sum(seconds.values())
-    summary = AugmentSummary(
-        **record,
-        seconds={name: round(value, 3) for name, value in seconds.items()},
-        artifact=str(out),
-        artifact_sha256=file_sha256(out),
-        content_checksum=stored["checksum"],
-    )
-    write_json_atomic(summary_path(out), summary.to_dict())
-    return summary
+        clock = time.perf_counter()
+        errors = result.diagnostics["dynamics_error"]
+        statistics = {
+            "dynamics_error_mean": float(errors.mean()),
+            "dynamics_error_median": float(np.median(errors)),
+            "novelty_mean": float(distances.mean()),
+            "novelty_median": float(np.median(distances)),
+            "novelty_sample": int(distances.size),
+            "terminals": int(result.transitions.terminals.sum()),
+        }
+        # the summary's fields that describe the file's content; the manifest keeps them too
+        record = {
+            "task": task.name,
+            "source_id": info.id,
+            "source_sha256": info.sha256,
+            "n_source": len(transitions),
+            "eta": generation.eta,
+            "lam": generation.lam,
+            "n": generation.n,
+            **{key: result.counts[key] for key in COUNTED},
+            **statistics,
+            "generators_cached": all(
+                r.get("cached", False) for r in generators.training_report.values()
+            ),
+            "device": str(generators.device),
+            "profile": profile,
+            "table_row": table_row(task, learner),
+        }
+        manifest = _manifest(
+            task,
+            info,
+            env_id,
+            generation,
+            generator_config,
+            generators,
+            seed,
+            result,
+            record,
+            request,
+        )
+        stored = write_artifact(out, result.transitions, result.diagnostics, manifest, force=force)
+        seconds["write"] = time.perf_counter() - clock
+        seconds["total"] = sum(seconds.values())
+        summary = AugmentSummary(
+            **record,
+            seconds={name: round(value, 3) for name, value in seconds.items()},
+            artifact=str(out),
+            artifact_sha256=file_sha256(out),
+            content_checksum=stored["checksum"],
+        )
+        write_json_atomic(summary_path(out), summary.to_dict())
+        return summary
+
+
+def check_seed(seed: int) -> None:
+    """Seeds must fit every generator they reach (numpy and torch take 63 bits)."""
+    if not 0 <= seed <= SEED_MAX:
+        raise SettingError(f"--seed: expected an integer in [0, {SEED_MAX}], found {seed}")
+
+
+def synthetic_rows(eta: float, n_source: int) -> int:
+    """round(eta * N), refused before any work when it keeps nothing."""
+    target = synthetic_count(eta, n_source)
+    if target < 1:
+        raise SettingError(
+            f"--eta {eta}: keeps no transition of the source's {n_source}; "
+            f"expected eta >= {0.5 / n_source:.2g}"
+        )
+    return target
+
+
+def _table_text(row: dict[str, Any]) -> str:
+    if not row:
+        return "not recorded"
+    return f"{row.get('learner')} row of {row.get('table')}, then any overrides"
 
 
 def summary_path(artifact: Path) -> Path:
@@ -565,7 +369,7 @@ def _load_or_collect(
 ) -> tuple[Transitions, SourceInfo]:
     spec = source or task.name
     try:
-        return load_source(spec, root)
+        return load_source(spec, root, task=task)
     except DatasetNotFoundError:
         own_dataset = source is None or source in (task.name, task.local_dataset_id)
         if not (own_dataset and task.collectable):
@@ -578,10 +382,12 @@ def _load_or_collect(
         f"(hipode collect {task.name}); this takes a while once[/]"
     )
     collect(task, root=root, show_progress=show_progress)
-    return load_source(spec, root)
+    return load_source(spec, root, task=task)
 
 
-def _reuse_existing(out: Path, request: _Request, seconds: dict[str, float]) -> AugmentSummary:
+def _reuse_existing(
+    out: Path, request: ArtifactRequest, seconds: dict[str, float]
+) -> AugmentSummary:
     """Keep an existing artifact built from the same request (after verifying it); refuse others."""
     clock = time.perf_counter()
     try:
@@ -631,7 +437,7 @@ def _manifest(
     seed: int,
     result: GenerationResult,
     summary: dict[str, Any],
-    request: _Request,
+    request: ArtifactRequest,
 ) -> dict[str, Any]:
     """The provenance stored in the artifact (DESIGN.md's manifest; the writer adds schema and
     checksum)."""
@@ -649,6 +455,7 @@ def _manifest(
         else task.ref_max_score,
         "source": source_record,
         "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+        "table_row": summary["table_row"],
         "hyper_parameters": {
             **asdict(generation),
             "alpha": generator_config.alpha,

@@ -10,6 +10,7 @@ from hipode_pipeline.commands import (
     collect,
     datasets,
     merge,
+    sweep,
     tasks,
     train,
     verify,
@@ -22,7 +23,7 @@ app = typer.Typer(
     add_completion=False,
 )
 
-for group in (tasks, collect, datasets, augment, merge, train, verify, artifacts):
+for group in (tasks, collect, datasets, augment, merge, train, verify, artifacts, sweep):
     group.register(app)
 
 

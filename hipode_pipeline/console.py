@@ -18,9 +18,16 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 from rich.table import Table
+from rich.text import Text
 
 # width off a terminal (logs, pipes, CI) unless $COLUMNS says otherwise
 LOG_WIDTH = 160
+# longest text a table cell shows; a value read from a file can be megabytes
+CELL_LIMIT = 300
+# longest error or warning line; long enough for a path, a field and what was expected
+MESSAGE_LIMIT = 1000
+# longest string a listing's JSON carries (PATH_MAX, so real paths stay whole)
+JSON_LIMIT = 4096
 
 
 def _console(stderr: bool) -> Console:
@@ -57,19 +64,52 @@ def rate_text(done: float, elapsed: float, unit: str = "steps") -> str:
     return f"{done / elapsed:,.0f} {unit}/s" if elapsed > 0 else ""
 
 
+def shorten(value: Any, limit: int = CELL_LIMIT) -> str:
+    """`value` as one printable line: control characters escaped, and text over `limit`
+    characters cut to its start, quoted, with its length: `'abc…' (10,485,760 characters)`."""
+    text = value if isinstance(value, str) else str(value)
+    if len(text) <= limit:
+        return _printable(text)
+    return f"{text[:limit] + '…'!r} ({len(text):,} characters)"
+
+
+def _printable(text: str) -> str:
+    # newlines and terminal escapes from a file must not break the line or drive the terminal
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
+def cap_strings(data: Any, limit: int = JSON_LIMIT) -> Any:
+    """`data` with every string (keys too) over `limit` characters shortened; the rest kept."""
+    if isinstance(data, str):
+        return data if len(data) <= limit else shorten(data, limit)
+    if isinstance(data, dict):
+        return {cap_strings(k, limit): cap_strings(v, limit) for k, v in data.items()}
+    if isinstance(data, list | tuple):
+        return [cap_strings(v, limit) for v in data]
+    return data
+
+
+def plain(value: Any, limit: int = MESSAGE_LIMIT) -> Text:
+    """A line for the terminal that rich prints as it is (no markup read from the value)."""
+    return Text(shorten(value, limit))
+
+
 def table(title: str, columns: list[str], rows: list[list[Any]]) -> Table:
-    t = Table(title=title, title_justify="left")
+    """Cells are shortened plain text: values read from files never parse as rich markup."""
+    t = Table(title=plain(title), title_justify="left")
     for column in columns:
         t.add_column(column, overflow="fold")
     for row in rows:
-        t.add_row(*(_cell(v) for v in row))
+        t.add_row(*(Text(_cell(v)) for v in row))
     return t
 
 
 def _cell(value: Any) -> str:
     if isinstance(value, float):
         return f"{value:,.1f}" if abs(value) >= 100 else f"{value:.4g}"
-    return "" if value is None else str(value)
+    return "" if value is None else shorten(value)
 
 
 def print_json(data: Any) -> None:

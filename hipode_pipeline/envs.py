@@ -4,16 +4,21 @@ observations, so a synthetic transition ends exactly where the real environment 
 The rules mirror gymnasium's v5 `is_healthy` with default constructor arguments and the default
 observation layout (x position excluded, so observation[0] is the torso height and
 observation[1] its angle).
+
+Also the one map from env ids met in data (D4RL dataset names, older gym versions) to the
+Gymnasium env we run: `canonical_env_id`.
 """
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from hipode_pipeline.errors import DataFormatError
+from hipode_pipeline.tasks import MUJOCO_ENVS, all_tasks
 
 
 @dataclass(frozen=True)
@@ -93,3 +98,48 @@ def terminal_flags(
 ) -> np.ndarray:
     """Apply `env_id`'s termination rule to (M, obs_dim) raw next observations -> (M,) bool."""
     return termination_rule(env_id, next_observations.shape[1], origin)(next_observations)
+
+
+# D4RL's dataset kinds: hopper-medium-replay-v2 (locomotion), pen-human-v1 (Adroit)
+D4RL_LOCOMOTION_KINDS = (
+    "random",
+    "medium",
+    "medium-replay",
+    "medium-expert",
+    "expert",
+    "full-replay",
+)
+D4RL_ADROIT_KINDS = ("human", "cloned", "expert")
+D4RL_NAME = re.compile(r"([a-z0-9]+)-([a-z]+(?:-[a-z]+)*)-v\d+", re.IGNORECASE)
+# gym's Hopper-v2/v3 (mujoco-py) and gymnasium's v4, and v5 itself spelled in another case
+OLD_LOCOMOTION_ID = re.compile(r"([a-z0-9]+)-v([2-5])", re.IGNORECASE)
+
+
+def canonical_env_id(raw: str) -> tuple[str, str | None]:
+    """The env we run for an env id met in data, and a one-line note when it is another id.
+
+    D4RL dataset names (hopper-medium-replay-v2, pen-human-v1) and older versions of the
+    locomotion envs (Hopper-v2..v4) map to the registry's env of their family (Hopper-v5,
+    AdroitHandPen-v1); anything else is returned unchanged, to be checked by the caller.
+    """
+    text = raw.strip()
+    # family -> the env the task registry runs it on, e.g. hopper -> Hopper-v5
+    family_env = {task.env: task.env_id for task in all_tasks().values()}
+    # D4RL's locomotion data came from the v2 envs, and v2-v5 of these three families share the
+    # default observation layout (x position excluded), so such data is v5 data
+    d4rl = D4RL_NAME.fullmatch(text)
+    if d4rl:
+        family, kind = d4rl.group(1).lower(), d4rl.group(2).lower()
+        kinds = D4RL_LOCOMOTION_KINDS if family in MUJOCO_ENVS else D4RL_ADROIT_KINDS
+        if family in family_env and kind in kinds:
+            target = family_env[family]
+            return target, f"env id {raw!r} is a D4RL dataset name; running it as {target}"
+    old = OLD_LOCOMOTION_ID.fullmatch(text)
+    if old and old.group(1).lower() in MUJOCO_ENVS:
+        target = family_env[old.group(1).lower()]
+        if target == raw:
+            return raw, None
+        if old.group(2) == target.rsplit("-v", 1)[1]:
+            return target, f"env id {raw!r} is spelled {target} in gymnasium; running it as that"
+        return target, f"env id {raw!r} is an older version; running it as {target}"
+    return raw, None

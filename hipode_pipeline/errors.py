@@ -38,8 +38,16 @@ class OverwriteError(HipodeError):
     """An output already exists and the user did not pass --force."""
 
 
+class ArtifactMismatchError(HipodeError):
+    """An artifact that exists but was built with settings other than the run asks for."""
+
+
 class SettingError(HipodeError):
     """A setting, profile name or override outside its valid range."""
+
+
+class TrainingDivergedError(HipodeError):
+    """A model's weights became NaN or infinite during training."""
 
 
 class UnsafeEnvError(HipodeError):
@@ -60,3 +68,7 @@ class CollectionBusyError(HipodeError):
 
 class CollectionInterrupted(HipodeError):
     """Training stopped on purpose after a checkpoint (STOP_AFTER_STEPS); rerun to resume."""
+
+
+class InstallationError(HipodeError):
+    """The installed package lacks files it ships with (its stages/ configuration)."""

@@ -9,7 +9,17 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from hipode_pipeline.errors import DataFormatError
 from hipode_pipeline.simulator import make_env_safely
+from hipode_pipeline.tasks import normalized_score
+
+__all__ = [
+    "EvalResult",
+    "check_data_fits_env",
+    "evaluate_policy",
+    "evaluation_seeds",
+    "normalized_score",
+]
 
 Policy = Callable[[np.ndarray], np.ndarray]
 
@@ -39,9 +49,21 @@ class EvalResult:
         }
 
 
-def normalized_score(episode_return: float | np.ndarray, ref_min: float, ref_max: float):
-    """D4RL's 100 · (R − R_random) / (R_expert − R_random)."""
-    return 100.0 * (episode_return - ref_min) / (ref_max - ref_min)
+def check_data_fits_env(env_id: str, obs_dim: int, act_dim: int, origin: str) -> None:
+    """Refuse data whose observation or action size is not the env's, before any training
+    (a policy of the wrong shape would only fail at its first evaluation)."""
+    env = make_env_safely(env_id, origin)
+    try:
+        expected_obs = int(np.prod(env.observation_space.shape))
+        expected_act = int(np.prod(env.action_space.shape))
+    finally:
+        env.close()
+    for field, found, expected in (
+        ("observations", obs_dim, expected_obs),
+        ("actions", act_dim, expected_act),
+    ):
+        if found != expected:
+            raise DataFormatError(origin, field, f"{expected} columns ({env_id}'s layout)", found)
 
 
 def evaluation_seeds(seed: int, episodes: int) -> list[int]:
@@ -62,6 +84,7 @@ def evaluate_policy(
     """Run `episodes` deterministic episodes side by side; `policy` maps (k, ds) -> (k, da)."""
     seeds = evaluation_seeds(seed, episodes)
     envs = [make_env_safely(env_id) for _ in range(episodes)]
+    low, high = envs[0].action_space.low, envs[0].action_space.high
     try:
         observations = np.stack(
             [env.reset(seed=s)[0] for env, s in zip(envs, seeds, strict=True)]
@@ -71,7 +94,8 @@ def evaluate_policy(
         active = np.ones(episodes, dtype=bool)
         while active.any():
             running = np.flatnonzero(active)
-            actions = np.asarray(policy(observations[running]))
+            # the env charges control cost on the action as given: keep it inside the limits
+            actions = np.clip(np.asarray(policy(observations[running])), low, high)
             for action, i in zip(actions, running, strict=True):
                 obs, reward, terminated, truncated, _ = envs[i].step(action)
                 observations[i] = obs

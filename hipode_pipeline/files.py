@@ -1,17 +1,25 @@
 """Writing files so that a reader never sees half of one, and hashing them.
 
 Every output goes to a temporary file in its target's folder and is renamed over the target
-once complete (rename is atomic within one file system). A writer that is killed leaves at most
-a hidden `.<name>.*.tmp` file behind, never a truncated target.
+once complete (rename is atomic within one file system), or, where an existing file must never
+be replaced, hard-linked to the target name (which fails if the name exists). A writer that is
+killed leaves at most a hidden `.<name>.p<pid>@<host>.*.tmp` file behind, never a truncated
+target; the next write into that folder removes it. `output_lock` keeps two processes from
+building the same output at once.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
+import fcntl
 import hashlib
 import io
 import json
 import os
+import re
+import socket
+import stat
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -20,15 +28,33 @@ from typing import Any
 import numpy as np
 import torch
 
-from hipode_pipeline.errors import DataFormatError
+from hipode_pipeline.errors import DataFormatError, OverwriteError, SettingError
+
+# a temp file's name records its writer, so a later writer can tell a dead one's leftovers
+TEMP_NAME = re.compile(r"\.(?P<stem>.*)\.p(?P<pid>\d+)@(?P<host>[\w-]*)\.[^.]+\.tmp")
+# a temp name keeps this much of the target's name, so it stays under NAME_MAX (255 bytes)
+TEMP_STEM_LIMIT = 120
+# link(2) fails with these where the file system has no hard links (FAT, some FUSE mounts)
+NO_HARD_LINKS = {errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EMLINK, errno.ENOSYS}
+
+
+def _host() -> str:
+    return re.sub(r"[^\w-]", "_", socket.gethostname())[:32]
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary path beside `path`: on success it replaces `path`, on error it goes."""
+def atomic_path(path: str | Path, *, replace: bool = True) -> Iterator[Path]:
+    """Yield a temporary path beside `path`: on success it becomes `path`, on error it goes.
+
+    With `replace=False` an existing `path` is never replaced, even by a writer that got there
+    first meanwhile: the temporary file is hard-linked to `path`, which fails if it exists
+    (OverwriteError)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    # killed writers' leftovers go on the next write here (by dead pid: live writers are safe)
+    remove_stale_temps(path.parent)
+    prefix = f".{path.name[:TEMP_STEM_LIMIT]}.p{os.getpid()}@{_host()}."
+    handle, temp_name = tempfile.mkstemp(prefix=prefix, suffix=".tmp", dir=path.parent)
     os.close(handle)
     temp = Path(temp_name)
     # mkstemp creates the file 0600; give the final file what a plain open() would
@@ -37,9 +63,184 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     os.chmod(temp, 0o666 & ~umask)
     try:
         yield temp
-        os.replace(temp, path)
+        if replace:
+            os.replace(temp, path)
+        else:
+            _create_from(temp, path)
     finally:
         temp.unlink(missing_ok=True)
+
+
+def _create_from(temp: Path, path: Path) -> None:
+    """Give `temp` the name `path` unless something already has that name."""
+    try:
+        os.link(temp, path)
+    except FileExistsError:
+        raise OverwriteError(f"{path} already exists; pass --force to replace it") from None
+    except OSError as error:
+        if error.errno not in NO_HARD_LINKS:
+            raise
+        # no hard links here: check, then rename (callers hold output_lock, so no hipode
+        # writer can slip in between)
+        if os.path.lexists(path):
+            raise OverwriteError(f"{path} already exists; pass --force to replace it") from None
+        os.replace(temp, path)
+
+
+def remove_stale_temps(folder: Path) -> list[Path]:
+    """Remove the temp files in `folder` whose writer process is gone, and return them.
+
+    Stale means: written on this host (the name says so) by a process id that no longer
+    exists. A live writer's file is never touched, so two writers into one folder are safe;
+    a reused process id only keeps a leftover longer."""
+    removed = []
+    host = _host()
+    try:
+        names = [entry.name for entry in os.scandir(folder) if entry.name.endswith(".tmp")]
+    except OSError:
+        return removed
+    for name in names:
+        match = TEMP_NAME.fullmatch(name)
+        if match is None or match["host"] != host or _process_alive(int(match["pid"])):
+            continue
+        with contextlib.suppress(FileNotFoundError):
+            (folder / name).unlink()
+            removed.append(folder / name)
+    return removed
+
+
+def _process_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return pid > 0  # another user's process (or a number no process can have)
+    return True
+
+
+def lock_path(path: str | Path) -> Path:
+    """The lock file of an output: `<folder>/.<name>.lock`."""
+    path = Path(path)
+    return path.with_name(f".{path.name[:TEMP_STEM_LIMIT]}.lock")
+
+
+@contextlib.contextmanager
+def output_lock(path: str | Path, *, command: str) -> Iterator[bool]:
+    """Hold an exclusive lock on output `path` (flock on `lock_path(path)`); yield whether it
+    had to wait for another process.
+
+    A second process that wants the same output says on stderr that it waits, then waits:
+    when it gets the lock the output is complete, so it usually finds it up to date. The lock
+    file records `<pid> <command>` for that message and is removed on release."""
+    path = Path(path)
+    lock = lock_path(path)
+    # folders made only for the lock go again if the command writes nothing into them
+    made = [folder for folder in [lock.parent, *lock.parent.parents] if not folder.exists()]
+    fd, waited = _acquire(lock, path)
+    try:
+        if fd is not None:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()} {command}\n".encode(), 0)
+        yield waited
+    finally:
+        if fd is not None:
+            lock.unlink(missing_ok=True)
+            os.close(fd)
+        for folder in made:
+            with contextlib.suppress(OSError):  # not empty: something was written there
+                folder.rmdir()
+
+
+def _acquire(lock: Path, path: Path) -> tuple[int | None, bool]:
+    """(descriptor holding the lock, whether we waited); None where locks are unsupported."""
+    waited = False
+    while True:
+        lock.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
+        except FileNotFoundError:
+            continue  # another process removed the folder it had made for its own lock
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                if not waited:
+                    _say_waiting(fd, path)
+                waited = True
+                fcntl.flock(fd, fcntl.LOCK_EX)
+        except OSError as error:
+            os.close(fd)
+            if error.errno in (errno.ENOLCK, errno.ENOTSUP, errno.EOPNOTSUPP):
+                # no locks on this file system: go on unlocked (atomic_path still never leaves
+                # a partial file, and replace=False still never replaces one)
+                return None, waited
+            raise
+        except BaseException:  # Ctrl-C while waiting
+            os.close(fd)
+            raise
+        # the holder before us removes the file on release: a lock on a removed file is none
+        with contextlib.suppress(FileNotFoundError):
+            if os.path.samestat(os.fstat(fd), os.stat(lock)):
+                return fd, waited
+        os.close(fd)
+
+
+def _say_waiting(fd: int, path: Path) -> None:
+    from hipode_pipeline import console
+
+    words = os.pread(fd, 200, 0).decode(errors="replace").split(maxsplit=1)
+    pid = words[0] if words and words[0].isdigit() else "?"
+    command = words[1].strip() if len(words) > 1 else "hipode"
+    console.err.print(console.plain(f"waiting for another `{command}` writing {path} (pid {pid})…"))
+
+
+def path_kind(path: Path) -> str:
+    """What is at `path`, in words, for an error message."""
+    try:
+        mode = path.lstat().st_mode
+    except OSError:
+        return "nothing"
+    if stat.S_ISLNK(mode) and not path.exists():
+        return "a broken symbolic link"
+    mode = path.stat().st_mode
+    if stat.S_ISDIR(mode):
+        return "a directory"
+    if stat.S_ISREG(mode):
+        return "a file"
+    return "a FIFO" if stat.S_ISFIFO(mode) else "a special file (socket or device)"
+
+
+def check_output_file(path: str | Path, option: str | None = None) -> Path:
+    """An output file path: a regular file or nothing, in a folder that exists or can be made.
+
+    `option` (e.g. "--out") names where the path came from in the error message."""
+    path = Path(path)
+    label = f"{option} {path}" if option else str(path)
+    if os.path.lexists(path) and path_kind(path) not in ("a file", "a broken symbolic link"):
+        raise SettingError(f"{label}: expected a file path, found {path_kind(path)}")
+    _check_parents(path, label)
+    return path
+
+
+def check_output_folder(path: str | Path, option: str | None = None) -> Path:
+    """An output folder: an existing folder, or nothing in a folder that can hold one."""
+    path = Path(path)
+    label = f"{option} {path}" if option else str(path)
+    if os.path.lexists(path) and path_kind(path) != "a directory":
+        raise SettingError(f"{label}: expected a folder, found {path_kind(path)}")
+    _check_parents(path, label)
+    return path
+
+
+def _check_parents(path: Path, label: str) -> None:
+    for parent in path.parents:
+        if parent.is_dir():
+            return
+        if os.path.lexists(parent):
+            raise SettingError(f"{label}: expected a folder at {parent}, found {path_kind(parent)}")
 
 
 def write_bytes_atomic(path: str | Path, data: bytes | memoryview) -> None:

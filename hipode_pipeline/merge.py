@@ -13,10 +13,20 @@ import h5py
 import numpy as np
 
 from hipode_pipeline.artifact import Artifact, read_artifact
+from hipode_pipeline.data.d4rl_source import stored_here
 from hipode_pipeline.data.load import load_source
 from hipode_pipeline.data.transitions import FIELDS, SourceInfo, Transitions, validate_transitions
-from hipode_pipeline.errors import DataFormatError, DatasetNotFoundError, OverwriteError
+from hipode_pipeline.envs import canonical_env_id
+from hipode_pipeline.errors import DataFormatError, OverwriteError
 from hipode_pipeline.files import atomic_path
+from hipode_pipeline.validation import (
+    MANIFEST_CHECKSUM_KEY,
+    ManifestSyntaxError,
+    manifest_checksum,
+    nonfinite_to_null,
+    parse_manifest_text,
+    require_regular_file,
+)
 
 MERGED_SCHEMA = {"name": "hipode-merged", "version": "1.0"}
 PROVENANCE_ATTR = "provenance"  # JSON: schema, source record, artifact manifest
@@ -57,6 +67,8 @@ def check_pair(source: Transitions, info: SourceInfo, artifact: Artifact) -> Non
     manifest, path = artifact.manifest, artifact.path
     recorded = manifest.get("source") or {}
     env_id = manifest.get("env_id") or recorded.get("env_id")
+    if isinstance(env_id, str):
+        env_id = canonical_env_id(env_id)[0]  # an artifact of a Hopper-v2 source runs as v5
     if info.env_id and env_id and env_id != info.env_id:
         raise DataFormatError(
             path, "manifest.env_id", f"{info.env_id} (the env of source {info.id})", env_id
@@ -81,16 +93,19 @@ def check_pair(source: Transitions, info: SourceInfo, artifact: Artifact) -> Non
 
 
 def load_merged(
-    source_spec: str, artifact_path: Path | None, *, root: Path | None = None
+    source_spec: str,
+    artifact_path: Path | None,
+    *,
+    root: Path | None = None,
+    loaded: tuple[Transitions, SourceInfo] | None = None,
 ) -> MergedData:
-    """Load a source (task name, Minari id or D4RL file) and, if given, its artifact, checked."""
-    real, info = load_source(source_spec, root)
+    """Load a source (task name, Minari id or D4RL file; or take it `loaded` already) and, if
+    given, its artifact, checked against it."""
+    real, info = loaded if loaded is not None else load_source(source_spec, root)
     source = _compact_source(info)
     if artifact_path is None:
         return MergedData(real, None, source, None, None)
-    artifact_path = Path(artifact_path)
-    if not artifact_path.is_file():
-        raise DatasetNotFoundError(f"{artifact_path}: no such artifact file")
+    artifact_path = require_regular_file(artifact_path)
     artifact = read_artifact(artifact_path)
     check_pair(real, info, artifact)
     return MergedData(real, artifact.transitions, source, artifact.manifest, artifact_path)
@@ -133,43 +148,36 @@ def write_merged(merged: MergedData, out: Path, *, force: bool = False) -> Path:
         "episode_ends": "synthetic rows (not terminal) carry timeouts = 1: one-step episodes; "
         "read them with next_observations",
     }
-    with atomic_path(out) as temp, h5py.File(temp, "w") as f:
+    with atomic_path(out, replace=force) as temp, h5py.File(temp, "w") as f:
         for name, array in all_rows.arrays().items():
             f.create_dataset(name, data=array)
         f.create_dataset("is_synthetic", data=merged.is_synthetic())
         for key in ("env_id", "ref_min_score", "ref_max_score"):
             if merged.source.get(key) is not None:
                 f.attrs[key] = merged.source[key]
-        f.attrs[PROVENANCE_ATTR] = json.dumps(provenance, sort_keys=True, default=str)
+        # strict JSON, as read_merged reads it: a non-finite number becomes null
+        as_json = json.loads(json.dumps(provenance, sort_keys=True, default=str))
+        f.attrs[PROVENANCE_ATTR] = json.dumps(
+            nonfinite_to_null(as_json), sort_keys=True, allow_nan=False
+        )
     return out
 
 
 def read_merged(path: Path) -> MergedData:
-    """Read a file `write_merged` wrote, split back into real and synthetic rows."""
-    path = Path(path)
-    if not path.is_file():
-        raise DatasetNotFoundError(f"{path}: no such merged file")
+    """Read a file `write_merged` wrote, split back into real and synthetic rows. The provenance
+    is strict JSON of the merged schema (an embedded artifact manifest must match its digest
+    when it carries one), and only datasets stored in the file are read."""
+    path = require_regular_file(path, "merged file")
     try:
         with h5py.File(path, "r") as f:
-            if PROVENANCE_ATTR not in f.attrs:
-                raise DataFormatError(
-                    path,
-                    PROVENANCE_ATTR,
-                    f"a JSON attribute of schema {MERGED_SCHEMA['name']}",
-                    "nothing",
-                )
-            provenance = json.loads(f.attrs[PROVENANCE_ATTR])
-            if provenance.get("schema", {}).get("name") != MERGED_SCHEMA["name"]:
-                raise DataFormatError(
-                    path, "provenance.schema", MERGED_SCHEMA, provenance.get("schema")
-                )
+            provenance = _read_provenance(path, f.attrs.get(PROVENANCE_ATTR))
             if "is_synthetic" not in f:
                 raise DataFormatError(
                     path, "is_synthetic", "a boolean mask, one per row", "nothing (missing)"
                 )
-            arrays = {name: f[name][()] for name in FIELDS if name in f}
-            mask = np.asarray(f["is_synthetic"][()], dtype=bool)
-    except OSError as error:
+            arrays = {name: _dataset(f, name, path)[()] for name in FIELDS if name in f}
+            mask = np.asarray(_dataset(f, "is_synthetic", path)[()], dtype=bool)
+    except (OSError, RuntimeError, ValueError, TypeError) as error:
         raise DataFormatError(
             path, "file", "a complete HDF5 file", f"unreadable ({error})"
         ) from None
@@ -183,6 +191,60 @@ def read_merged(path: Path) -> MergedData:
         rows = {k: v[mask] for k, v in everything.arrays().items()}
         synthetic = Transitions(**{**rows, "timeouts": np.zeros(int(mask.sum()), bool)})
     return MergedData(real, synthetic, provenance["source"], provenance.get("artifact"), None)
+
+
+def _dataset(f: h5py.File, name: str, path: Path) -> h5py.Dataset:
+    node = stored_here(f, name, path)
+    if not isinstance(node, h5py.Dataset) or node.dtype.kind not in "fiub":
+        raise DataFormatError(path, name, "a numeric dataset stored in this file", node)
+    return node
+
+
+def _read_provenance(path: Path, raw: object) -> dict[str, Any]:
+    """The `provenance` attribute: strict JSON, an object of the merged schema, its source an
+    object, its artifact manifest an object (or null) whose digest matches when it has one."""
+    expected = f"a JSON object of schema {MERGED_SCHEMA['name']}"
+    if raw is None:
+        raise DataFormatError(path, PROVENANCE_ATTR, expected, "nothing")
+    if isinstance(raw, bytes):
+        raw = raw.decode("utf-8", errors="replace")
+    if not isinstance(raw, str):
+        raise DataFormatError(path, PROVENANCE_ATTR, expected, f"a {type(raw).__name__} value")
+    try:
+        provenance = parse_manifest_text(raw)
+    except ManifestSyntaxError as error:
+        raise DataFormatError(path, PROVENANCE_ATTR, f"{expected} (strict JSON)", error) from None
+    except ValueError as error:
+        raise DataFormatError(path, PROVENANCE_ATTR, expected, f"not JSON ({error})") from None
+    if not isinstance(provenance, dict):
+        raise DataFormatError(path, PROVENANCE_ATTR, expected, type(provenance).__name__)
+    schema = provenance.get("schema")
+    if not isinstance(schema, dict) or schema.get("name") != MERGED_SCHEMA["name"]:
+        raise DataFormatError(path, "provenance.schema", MERGED_SCHEMA, repr(schema)[:80])
+    if not isinstance(provenance.get("source"), dict):
+        raise DataFormatError(
+            path,
+            "provenance.source",
+            "an object (the source record)",
+            repr(provenance.get("source"))[:80],
+        )
+    artifact = provenance.get("artifact")
+    if artifact is not None and not isinstance(artifact, dict):
+        raise DataFormatError(
+            path,
+            "provenance.artifact",
+            "an object (the artifact's manifest) or null",
+            repr(artifact)[:80],
+        )
+    stored = (artifact or {}).get(MANIFEST_CHECKSUM_KEY)
+    if stored is not None and stored != manifest_checksum(artifact):
+        raise DataFormatError(
+            path,
+            f"provenance.artifact.{MANIFEST_CHECKSUM_KEY}",
+            f"{manifest_checksum(artifact)} (the digest of the embedded manifest)",
+            f"{stored!r:.80}: the artifact's manifest was edited after merging",
+        )
+    return provenance
 
 
 def merge_files(

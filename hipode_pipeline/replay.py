@@ -4,14 +4,24 @@ or uniformly over the union. One index draw and one gather per batch."""
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 import torch
 
 from hipode_pipeline.data.transitions import Transitions
 from hipode_pipeline.errors import HipodeError
-from hipode_pipeline.learners.base import Batch
+
+
+class Batch(NamedTuple):
+    """One minibatch of raw (un-normalized) transitions on the learner's device."""
+
+    observations: torch.Tensor  # (B, ds)
+    actions: torch.Tensor  # (B, da)
+    rewards: torch.Tensor  # (B,)
+    next_observations: torch.Tensor  # (B, ds)
+    dones: torch.Tensor  # (B,) 1.0 where the MDP ended (terminal, not timeout)
+
 
 Mixing = Literal["mixed", "union"]
 MIXING_MODES = ("mixed", "union")

@@ -23,6 +23,11 @@ LEARNERS = ("td3bc", "cql", "iql")
 MUJOCO_ENVS = ("hopper", "halfcheetah", "walker2d")
 
 
+def normalized_score(episode_return, ref_min: float, ref_max: float):
+    """D4RL's 100 · (R − R_random) / (R_expert − R_random): 0 a random policy, 100 an expert."""
+    return 100.0 * (episode_return - ref_min) / (ref_max - ref_min)
+
+
 @dataclass(frozen=True)
 class AugmentParams:
     """HIPODE's hyper-parameters for one (task, learner) pair, as the paper's tables give them."""
@@ -71,12 +76,8 @@ class Task:
         return self.params[learner]
 
     def normalized_score(self, episode_return: float) -> float:
-        """D4RL-normalized score: 0 is a random policy, 100 an expert."""
-        return (
-            100.0
-            * (episode_return - self.ref_min_score)
-            / (self.ref_max_score - self.ref_min_score)
-        )
+        """D4RL-normalized score with this task's reference returns."""
+        return normalized_score(episode_return, self.ref_min_score, self.ref_max_score)
 
 
 def _load_toml(name: str) -> dict:

@@ -1,82 +1,65 @@
-"""One training run of stage two: a learner on source ⊕ synthetic (or the source alone),
-evaluated at intervals and at the end, in a run folder that makes it resumable:
+"""Stage two's driver: data -> learner -> evaluate -> run folder.
 
-    runs/<task>/<learner>-<data>-seed<seed>/
-        config.json     what was run: task, data (source sha256, artifact path + checksum),
-                        learner settings, η, seeds, package versions
-        metrics.jsonl   one line per log interval: step, losses, updates/s, evaluation
-        checkpoint.pt   weights, optimizers, step and RNG states (atomic; weights_only loadable)
-        scores.json     the last evaluation (the result) and the best one (labelled as such)
-
-Rerunning the same command on an unfinished run resumes from its checkpoint and continues
-exactly as an uninterrupted run would.
+The data comes from the stage contract (`hipode_pipeline.contract`): the artifact whose manifest
+matches the learner's table row, or a given one; batch η defaults to what that artifact was
+built for. The run lives in a folder named by its identity (`hipode_pipeline.run_folder`), so
+rerunning the same command resumes it, or prints its scores when it is finished.
 """
 
 from __future__ import annotations
 
 import json
-import shutil
+import math
 import time
 import tomllib
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from hipode_pipeline import console
-from hipode_pipeline.artifact import default_artifact_path
+from hipode_pipeline.contract import find_artifact, table_learner, table_row
+from hipode_pipeline.data.load import load_source
 from hipode_pipeline.device import select_device
-from hipode_pipeline.errors import DatasetNotFoundError, HipodeError, OverwriteError
-from hipode_pipeline.evaluate import EvalResult, evaluate_policy
-from hipode_pipeline.files import (
-    load_torch,
-    save_torch_atomic,
-    write_json_atomic,
-    write_text_atomic,
-)
-from hipode_pipeline.learners import LEARNERS, learner_class
+from hipode_pipeline.errors import HipodeError, SettingError
+from hipode_pipeline.evaluate import EvalResult, check_data_fits_env, evaluate_policy
+from hipode_pipeline.files import write_json_atomic
+from hipode_pipeline.learners import learner_class
+from hipode_pipeline.learners.base import Learner
 from hipode_pipeline.merge import MergedData, load_merged
 from hipode_pipeline.paths import stages_dir
 from hipode_pipeline.replay import MIXING_MODES, MixedReplay
-from hipode_pipeline.tasks import get_task
+from hipode_pipeline.run_folder import (
+    TrainResult,
+    check_run_dir,
+    finish_run,
+    open_run_dir,
+    run_folder,
+    save_checkpoint,
+    truncate_metrics,
+)
+from hipode_pipeline.seeding import SEED_MAX
+from hipode_pipeline.simulator import check_env_id
+from hipode_pipeline.tasks import Task, get_task
 from hipode_pipeline.versions import package_versions
 
 DATA_CHOICES = ("merged", "source")
-BEST_LABEL = "best of all evaluations (optimistic: picked on the evaluation episodes themselves)"
-# config.json keys that must match for a rerun to continue an existing run
-IDENTITY_KEYS = (
-    "task",
-    "learner",
-    "learner_config",
-    "data",
-    "eta",
-    "mixing",
-    "batch_size",
-    "seed",
-    "source_sha256",
-    "artifact_checksum",
-)
+# a batch η above the artifact's own makes each synthetic row recur this many times more often
+# than the artifact was built for; beyond this factor the run is refused
+MAX_SYNTHETIC_OVERUSE = 2.0
+MAX_STEPS = 100_000_000
+MAX_BATCH_SIZE = 1 << 20
+MAX_EVAL_EPISODES = 10_000
 
 
-@dataclass
-class TrainResult:
-    """What a finished run reports; also written as scores.json."""
+@dataclass(frozen=True)
+class RunData:
+    """A run's data and where it came from: the merged rows and the artifact's choice."""
 
-    run_dir: str  # the run folder
-    task: str
-    learner: str
-    data: str  # merged | source
-    eta: float  # synthetic fraction per batch
-    steps: int  # updates done
-    last: dict[str, Any]  # the final evaluation: step, return and score mean/std
-    best: dict[str, Any] | None  # the best evaluation, labelled as such
-    updates_per_second: float  # training throughput (evaluation time excluded)
-    resumed_from: int  # step the run continued from (0: fresh)
-    evaluations: list[dict[str, Any]] = field(default_factory=list)  # every evaluation
-
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+    merged: MergedData
+    artifact_choice: str  # "table": found by the learner's table row; "given": --artifact; "none"
+    artifact_eta: float | None  # the synthetic rate the artifact was built with, if recorded
 
 
 def train_settings() -> dict[str, Any]:
@@ -84,46 +67,92 @@ def train_settings() -> dict[str, Any]:
         return tomllib.load(f)
 
 
-def run_folder(out_dir: Path, task: str, learner: str, data: str, seed: int) -> Path:
-    return Path(out_dir) / task / f"{learner.replace(':', '-')}-{data}-seed{seed}"
-
-
-def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
-    save_torch_atomic(path, state)
-
-
-def load_checkpoint(path: Path) -> dict[str, Any]:
-    return load_torch(path, "a checkpoint written by `hipode train` (delete it or pass --force)")
-
-
 def resolve_data(
-    task_name: str,
+    task: Task,
     learner: str,
     data: str,
     *,
     source: str | None,
     artifact: Path | None,
-    root: Path | None,
-) -> MergedData:
+    artifact_seed: int = 0,
+    root: Path | None = None,
+) -> RunData:
     """The source (the task's collected dataset unless `source` names another) and, for
-    data=merged, the artifact `hipode augment` wrote for this task (or `artifact`)."""
+    data=merged, the artifact the learner's table row asks for (or `artifact`), checked."""
     if data not in DATA_CHOICES:
         raise HipodeError(f"--data: expected one of {DATA_CHOICES}, found {data!r}")
-    task = get_task(task_name)
-    if data == "merged" and artifact is None:
-        # `hipode augment` writes the td3bc-named file; any learner may train on it
-        candidates = [
-            default_artifact_path(task.name, learner=name, seed=0, root=root)
-            for name in dict.fromkeys([learner if learner in LEARNERS else "td3bc", "td3bc"])
-        ]
-        artifact = next((path for path in candidates if path.is_file()), candidates[-1])
-        if not artifact.is_file():
-            raise DatasetNotFoundError(
-                f"no synthetic artifact for {task.name} at {artifact}; "
-                f"run `make augment TASK={task.name}` (or `hipode augment {task.name}`) first, "
-                "pass --artifact FILE, or train on --data source"
+    loaded = load_source(source or task.name, root, task=task)
+    if data == "source":
+        return RunData(load_merged("", None, loaded=loaded), "none", None)
+    choice = "given"
+    if artifact is None:
+        info = loaded[1]
+        own = source is None or source in (task.name, task.local_dataset_id)
+        artifact, _ = find_artifact(
+            task,
+            learner,
+            source_sha256=info.sha256,
+            artifact_seed=artifact_seed,
+            root=root,
+            source_tag=None if own else info.sha256[:8],
+        )
+        choice = "table"
+    merged = load_merged(source or task.name, artifact, root=root, loaded=loaded)
+    params = (merged.artifact_manifest or {}).get("hyper_parameters")
+    artifact_eta = params.get("eta") if isinstance(params, dict) else None
+    if not isinstance(artifact_eta, int | float) or not math.isfinite(artifact_eta):
+        artifact_eta = None
+    return RunData(merged, choice, None if artifact_eta is None else float(artifact_eta))
+
+
+def batch_eta(
+    data: RunData, requested: float | None, table_eta: float, mixing: str
+) -> tuple[float, str | None]:
+    """The synthetic fraction per batch and a note for the user, if any.
+
+    Default: the artifact's own synthetic rate (the paper mixes batches at the η the artifact
+    was built with), else the learner's table value. A larger η re-draws each synthetic row
+    more often than real ones by η / η_artifact: up to MAX_SYNTHETIC_OVERUSE it is allowed with
+    a warning, beyond it refused.
+    """
+    if data.merged.synthetic is None:
+        return 0.0, None
+    if requested is not None and not (math.isfinite(requested) and 0.0 <= requested <= 1.0):
+        raise SettingError(f"--eta: expected a synthetic fraction in [0, 1], found {requested}")
+    built = data.artifact_eta
+    if requested is None:
+        if built is None:
+            return table_eta, (
+                f"the artifact records no synthetic rate: batch η = {table_eta:g} "
+                "from the learner's table row"
             )
-    return load_merged(source or task.name, artifact if data == "merged" else None, root=root)
+        if built > 1.0:
+            raise SettingError(
+                f"{data.merged.artifact_path}: built with eta {built:g} (more synthetic rows "
+                "than real ones); pass --eta in [0, 1] for the batch fraction"
+            )
+        return built, None
+    if built is None or mixing != "mixed" or requested <= built:
+        return requested, None
+    factor = requested / built
+    path, ceiling = data.merged.artifact_path, built * MAX_SYNTHETIC_OVERUSE
+    if factor > MAX_SYNTHETIC_OVERUSE:
+        raise SettingError(
+            f"--eta {requested:g}: {path} holds round({built:g}·N) synthetic rows, built for "
+            f"batch η ≤ {built:g}; η = {requested:g} would draw each of them {factor:.1f}× as "
+            f"often (at most {MAX_SYNTHETIC_OVERUSE:g}× is allowed). Build an artifact with "
+            f"`hipode augment --eta {requested:g}` or pass --eta ≤ {ceiling:g}"
+        )
+    return requested, (
+        f"--eta {requested:g} draws each synthetic row {factor:.1f}× as often as {path.name} "
+        f"was built for (η {built:g})"
+    )
+
+
+def _positive(name: str, value: int, upper: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= upper:
+        raise SettingError(f"{name}: expected an integer in [1, {upper:,}], found {value!r}")
+    return value
 
 
 def run_training(
@@ -138,6 +167,7 @@ def run_training(
     *,
     source: str | None = None,
     artifact: Path | None = None,
+    artifact_seed: int = 0,
     eta: float | None = None,
     mixing: str = "mixed",
     batch_size: int | None = None,
@@ -145,82 +175,84 @@ def run_training(
     learner_settings: dict[str, Any] | None = None,
     device: str | None = None,
     root: Path | None = None,
+    name: str | None = None,
+    run_dir: Path | None = None,
     force: bool = False,
     show_progress: bool = True,
 ) -> TrainResult:
     """Train `learner` on `task`'s data (merged: source ⊕ its artifact; source: η = 0), evaluate
-    it, and write the run folder. Resumes an unfinished run with the same settings."""
+    it, and write the run folder. Everything is checked before the folder is touched; an
+    unfinished run with the same identity resumes, a finished one returns its stored scores."""
     task_obj = get_task(task)
     settings = train_settings()
     family = "d3rlpy" if learner.startswith("d3rlpy:") else learner
     if family not in settings:
         learner_class(learner)  # raises the clear "unknown learner" error
     per_learner, run = settings[family], settings["run"]
+    if mixing not in MIXING_MODES:
+        raise HipodeError(f"--mixing: expected one of {MIXING_MODES}, found {mixing!r}")
+    for flag, value in (("--seed", seed), ("--artifact-seed", artifact_seed)):
+        if not 0 <= value <= SEED_MAX:
+            raise SettingError(f"{flag}: expected an integer in [0, {SEED_MAX}], found {value}")
     device_obj = select_device(device)
     if steps is None:
         steps = per_learner["steps"] if device_obj.type == "cuda" else per_learner["cpu_steps"]
-    eval_every = eval_every or per_learner["eval_every"]
-    eval_episodes = eval_episodes or run["eval_episodes"]
-    batch_size = batch_size or run["batch_size"]
-    log_every = log_every or run["log_every"]
-    if steps < 1 or eval_every < 1 or eval_episodes < 1 or batch_size < 1 or log_every < 1:
-        raise HipodeError(
-            "steps, eval_every, eval_episodes, batch_size and log_every: expected positive integers"
-        )
-    if mixing not in MIXING_MODES:
-        raise HipodeError(f"--mixing: expected one of {MIXING_MODES}, found {mixing!r}")
+    steps = _positive("--steps", steps, MAX_STEPS)
+    eval_every = _positive(
+        "--eval-every", per_learner["eval_every"] if eval_every is None else eval_every, MAX_STEPS
+    )
+    eval_episodes = _positive(
+        "--eval-episodes",
+        run["eval_episodes"] if eval_episodes is None else eval_episodes,
+        MAX_EVAL_EPISODES,
+    )
+    batch_size = _positive(
+        "--batch-size", run["batch_size"] if batch_size is None else batch_size, MAX_BATCH_SIZE
+    )
+    log_every = _positive("log_every", run["log_every"] if log_every is None else log_every, 10**9)
 
-    merged = resolve_data(task_obj.name, learner, data, source=source, artifact=artifact, root=root)
-    params = task_obj.augment_params(learner if learner in LEARNERS else "td3bc")
-    if data == "source":
-        eta = 0.0
-    elif eta is None:
-        eta = params.eta
+    run_data = resolve_data(
+        task_obj,
+        learner,
+        data,
+        source=source,
+        artifact=artifact,
+        artifact_seed=artifact_seed,
+        root=root,
+    )
+    merged = run_data.merged
+    params = task_obj.augment_params(table_learner(learner))
+    eta, eta_note = batch_eta(run_data, eta if data == "merged" else None, params.eta, mixing)
     env_id = merged.env_id or task_obj.env_id
+    origin = str(merged.source.get("id"))
+    check_env_id(env_id, origin=origin)
+    check_data_fits_env(env_id, merged.real.obs_dim, merged.real.act_dim, origin)
     ref_min, ref_max = merged.ref_scores()
     if ref_min is None or ref_max is None:
         ref_min, ref_max = task_obj.ref_min_score, task_obj.ref_max_score
 
     if family == "d3rlpy":
-        from hipode_pipeline.learners.external import train_d3rlpy
+        learner_config: dict[str, Any] = {"alpha": params.learner_alpha}
+        cls = None
+    else:
+        cls = learner_class(learner)
+        overrides = {**per_learner.get("config", {}), **(learner_settings or {})}
+        if params.learner_alpha is not None and learner in ("td3bc", "cql"):
+            overrides.setdefault(
+                "alpha" if learner == "td3bc" else "cql_alpha", float(params.learner_alpha)
+            )
+        if learner == "iql":
+            overrides.setdefault("max_steps", steps)
+        learner_config = cls.config_class.from_dict(
+            overrides,
+            origin=f"learner settings (table {learner}.config of stages/train.toml, overrides)",
+        ).to_dict()
 
-        return train_d3rlpy(
-            learner.split(":", 1)[1],
-            merged,
-            task=task_obj.name,
-            data=data,
-            eta=eta,
-            steps=steps,
-            seed=seed,
-            eval_every=eval_every,
-            eval_episodes=eval_episodes,
-            env_id=env_id,
-            ref_scores=(ref_min, ref_max),
-            run_dir=run_folder(out_dir, task_obj.name, learner, data, seed),
-            batch_size=batch_size,
-            device=device_obj,
-            learner_alpha=params.learner_alpha,
-            force=force,
-            show_progress=show_progress,
-        )
-
-    cls = learner_class(learner)
-    overrides = {**per_learner.get("config", {}), **(learner_settings or {})}
-    if params.learner_alpha is not None and learner in ("td3bc", "cql"):
-        overrides.setdefault(
-            "alpha" if learner == "td3bc" else "cql_alpha", float(params.learner_alpha)
-        )
-    if learner == "iql":
-        overrides.setdefault("max_steps", steps)
-    learner_config = cls.config_class.from_dict(
-        overrides,
-        origin=f"learner settings (table {learner}.config of stages/train.toml, overrides)",
-    )
-
+    manifest = merged.artifact_manifest or {}
     config = {
         "task": task_obj.name,
         "learner": learner,
-        "learner_config": learner_config.to_dict(),
+        "learner_config": learner_config,
         "data": data,
         "eta": eta,
         "mixing": mixing,
@@ -238,23 +270,55 @@ def run_training(
         "n_real": len(merged.real),
         "n_synthetic": 0 if merged.synthetic is None else len(merged.synthetic),
         "artifact_path": None if merged.artifact_path is None else str(merged.artifact_path),
-        "artifact_checksum": (merged.artifact_manifest or {}).get("checksum"),
+        "artifact_checksum": manifest.get("checksum"),
+        "artifact_choice": run_data.artifact_choice,
+        "artifact_eta": run_data.artifact_eta,
+        "artifact_seed": (manifest.get("seeds") or {}).get("seed")
+        if isinstance(manifest.get("seeds"), dict)
+        else None,
+        "artifact_hyper_parameters": _scalars(manifest.get("hyper_parameters")),
+        "table_row": table_row(task_obj, learner),
         "device": str(device_obj),
         "torch_threads": torch.get_num_threads(),
         "versions": package_versions(),
     }
-    run_dir = run_folder(out_dir, task_obj.name, learner, data, seed)
-    checkpoint_path, metrics_path = run_dir / "checkpoint.pt", run_dir / "metrics.jsonl"
-    checkpoint = _prepare_run_dir(run_dir, config, steps, force)
+    run_dir = Path(run_dir) if run_dir is not None else run_folder(out_dir, config, name)
+    state = check_run_dir(run_dir, config, steps, force)
+    if state == "finished":
+        scores = json.loads((run_dir / "scores.json").read_text())
+        console.err.print(f"{run_dir} already finished {scores.get('steps')} updates: its scores")
+        return TrainResult.from_dict({**scores, "finished_earlier": True})
+    if eta_note:
+        console.err.print(f"[yellow]note:[/] {eta_note}")
+    if run_data.artifact_choice == "table":
+        console.err.print(f"synthetic data: {merged.artifact_path} (the learner's table row)")
+
+    if cls is None:
+        from hipode_pipeline.learners.external import train_d3rlpy
+
+        return train_d3rlpy(
+            learner.split(":", 1)[1],
+            merged,
+            config=config,
+            run_dir=run_dir,
+            run_state=state,
+            device=device_obj,
+            show_progress=show_progress,
+        )
 
     model = cls(
-        merged.real.obs_dim, merged.real.act_dim, learner_config, device=device_obj, seed=seed
+        merged.real.obs_dim,
+        merged.real.act_dim,
+        cls.config_class.from_dict(learner_config),
+        device=device_obj,
+        seed=seed,
     )
     model.fit_statistics(merged.real)
     config["bf16_autocast"] = bool(getattr(model, "use_bf16", False))
     replay = MixedReplay(
         merged.real, merged.synthetic, eta=eta, mixing=mixing, device=device_obj, seed=seed
     )
+    checkpoint = open_run_dir(run_dir, state)
     evaluations: list[dict[str, Any]] = []
     resumed_from = 0
     if checkpoint is not None:
@@ -263,27 +327,93 @@ def run_training(
         evaluations = list(checkpoint["evaluations"])
         resumed_from = model.step
         console.err.print(f"resuming {run_dir} from step {resumed_from}")
-    _truncate_metrics(metrics_path, resumed_from)
+    truncate_metrics(run_dir / "metrics.jsonl", resumed_from)
     write_json_atomic(run_dir / "config.json", config)
+
+    train_seconds = _train_loop(
+        model, replay, config, run_dir, evaluations, show_progress=show_progress
+    )
+    ran = model.step - resumed_from
+    return finish_run(
+        TrainResult(
+            run_dir=str(run_dir),
+            task=task_obj.name,
+            learner=learner,
+            data=data,
+            eta=eta,
+            steps=model.step,
+            last={},
+            best=None,
+            updates_per_second=ran / train_seconds if train_seconds > 0 else 0.0,
+            resumed_from=resumed_from,
+            evaluations=evaluations,
+            seed=seed,
+            env_id=env_id,
+            data_identity=data_identity(config),
+        ),
+        eval_episodes,
+    )
+
+
+def data_identity(config: dict[str, Any]) -> dict[str, Any]:
+    """What a run trained on, as scores.json records it."""
+    keys = ("source_id", "source_sha256", "artifact_path", "artifact_checksum", "artifact_seed")
+    return {
+        **{key: config.get(key) for key in keys},
+        "eta": config["eta"],
+        "mixing": config["mixing"],
+        "artifact_hyper_parameters": config.get("artifact_hyper_parameters"),
+    }
+
+
+def _scalars(values: Any) -> dict[str, Any] | None:
+    if not isinstance(values, dict):
+        return None
+    return {k: v for k, v in values.items() if isinstance(v, str | int | float | bool)}
+
+
+def make_evaluator(policy, config: dict[str, Any]):
+    """The run's evaluation: its env, episodes and seed, scored with its reference returns."""
 
     def evaluate() -> EvalResult:
         return evaluate_policy(
-            model.act,
-            env_id,
-            episodes=eval_episodes,
-            seed=seed,
-            ref_min_score=ref_min,
-            ref_max_score=ref_max,
+            policy,
+            config["env_id"],
+            episodes=config["eval_episodes"],
+            seed=config["seed"],
+            ref_min_score=config["ref_min_score"],
+            ref_max_score=config["ref_max_score"],
         )
 
+    return evaluate
+
+
+def _train_loop(
+    model: Learner,
+    replay: MixedReplay,
+    config: dict[str, Any],
+    run_dir: Path,
+    evaluations: list[dict[str, Any]],
+    *,
+    show_progress: bool,
+) -> float:
+    """Update until `config["steps"]`, logging, evaluating and checkpointing on schedule;
+    appends to `evaluations` and returns the seconds spent training (evaluation excluded)."""
+    steps, eval_every, log_every = config["steps"], config["eval_every"], config["log_every"]
+    batch_size = config["batch_size"]
+    evaluate = make_evaluator(model.act, config)
     train_seconds, window_start, window_steps = 0.0, time.perf_counter(), 0
     bar_time, bar_step = window_start, model.step
     with (
         console.progress(disable=not show_progress) as prog,
-        open(metrics_path, "a") as metrics_file,
+        open(run_dir / "metrics.jsonl", "a") as metrics_file,
     ):
         bar = prog.add_task(
-            f"train {learner} {task_obj.name}", total=steps, completed=model.step, rate="", info=""
+            f"train {config['learner']} {config['task']}",
+            total=steps,
+            completed=model.step,
+            rate="",
+            info="",
         )
         while model.step < steps:
             losses = model.update(replay.sample(batch_size))
@@ -311,7 +441,7 @@ def run_training(
             metrics_file.flush()
             # after the metrics line: a resume drops any line newer than its checkpoint
             save_checkpoint(
-                checkpoint_path,
+                run_dir / "checkpoint.pt",
                 {
                     "learner": model.state_dict(),
                     "replay": replay.state_dict(),
@@ -329,135 +459,6 @@ def run_training(
             )
             window_start, window_steps = time.perf_counter(), 0
             bar_time, bar_step = window_start, step
-
     if not evaluations or evaluations[-1]["step"] != model.step:
-        result = evaluate()
-        evaluations.append({"step": model.step, **result.summary()})
-    ran = model.step - resumed_from
-    return finish_run(
-        TrainResult(
-            run_dir=str(run_dir),
-            task=task_obj.name,
-            learner=learner,
-            data=data,
-            eta=eta,
-            steps=model.step,
-            last={},
-            best=None,
-            updates_per_second=ran / train_seconds if train_seconds > 0 else 0.0,
-            resumed_from=resumed_from,
-            evaluations=evaluations,
-        ),
-        eval_episodes,
-    )
-
-
-def finish_run(result: TrainResult, eval_episodes: int) -> TrainResult:
-    """Label the last evaluation (the result) and the best one, and write scores.json."""
-    evaluations = result.evaluations
-    best = max(
-        evaluations,
-        key=lambda e: e["score_mean"] if e["score_mean"] is not None else e["return_mean"],
-    )
-    result.last = {
-        **evaluations[-1],
-        "episodes": eval_episodes,
-        "label": "last evaluation (the result)",
-    }
-    result.best = {**best, "label": BEST_LABEL}
-    write_json_atomic(Path(result.run_dir) / "scores.json", result.to_dict())
-    return result
-
-
-def differing_settings(run_dir: Path, expected: dict[str, Any]) -> list[str]:
-    """The keys of `expected` whose value differs from the run folder's config.json."""
-    config_path = run_dir / "config.json"
-    previous = json.loads(config_path.read_text()) if config_path.is_file() else {}
-    return [
-        key
-        for key, value in expected.items()
-        if previous.get(key) != json.loads(json.dumps(value, default=str))
-    ]
-
-
-def _scores_if_finished(run_dir: Path, steps: int) -> dict[str, Any] | None:
-    """scores.json of a run finished to at least `steps` updates; None if unfinished or absent."""
-    scores_path = run_dir / "scores.json"
-    if not scores_path.is_file():
-        return None
-    scores = json.loads(scores_path.read_text())
-    return scores if scores.get("steps", 0) >= steps else None
-
-
-def finished_scores(run_dir: Path, steps: int, expected: dict[str, Any]) -> dict[str, Any] | None:
-    """scores.json of a run in `run_dir` finished to at least `steps` updates; None if there is
-    none yet. Read-only; a finished run whose settings differ from `expected` is refused."""
-    scores = _scores_if_finished(run_dir, steps)
-    if scores is None:
-        return None  # unfinished at this budget: run_training continues it
-    differing = differing_settings(run_dir, expected)
-    if differing:
-        raise OverwriteError(
-            f"{run_dir}: holds a finished run with other settings ({', '.join(differing)} "
-            "differ); pass --force to train it again or --out for another folder"
-        )
-    return scores
-
-
-def _prepare_run_dir(
-    run_dir: Path, config: dict[str, Any], steps: int, force: bool
-) -> dict[str, Any] | None:
-    """Make the run folder; return the checkpoint to resume from, if any."""
-    checkpoint_path = run_dir / "checkpoint.pt"
-    if force and run_dir.exists():
-        shutil.rmtree(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    if not (run_dir / "config.json").is_file():
-        return None
-    differing = differing_settings(run_dir, {key: config[key] for key in IDENTITY_KEYS})
-    if differing:
-        raise OverwriteError(
-            f"{run_dir} holds a run with other settings ({', '.join(differing)} differ); "
-            "pass --force to replace it or --out for another folder"
-        )
-    if _scores_if_finished(run_dir, steps) is not None:
-        raise OverwriteError(
-            f"{run_dir} already finished {steps} steps (see scores.json); "
-            "pass --force to train again"
-        )
-    return load_checkpoint(checkpoint_path) if checkpoint_path.is_file() else None
-
-
-def _truncate_metrics(path: Path, step: int) -> None:
-    """Drop metric lines written after the checkpoint we resume from (they will be rewritten)."""
-    if not path.is_file():
-        return
-    kept = [
-        line for line in path.read_text().splitlines() if line and json.loads(line)["step"] <= step
-    ]
-    write_text_atomic(path, "".join(line + "\n" for line in kept))
-
-
-def score_table_rows(result: TrainResult) -> list[list[Any]]:
-    """One row: the last evaluation is the result; the best one is shown apart, labelled."""
-    last, best = result.last, result.best or {}
-    best_score = best.get("score_mean")
-    return [
-        [
-            result.task,
-            f"{result.learner} ({result.data}, η={result.eta:g})",
-            result.steps,
-            _pm(last.get("score_mean"), last.get("score_std"), "{:.1f}"),
-            _pm(last.get("return_mean"), last.get("return_std"), "{:.0f}"),
-            "n/a" if best_score is None else f"{best_score:.1f} @ {best.get('step')}",
-            f"{result.updates_per_second:.0f}",
-        ]
-    ]
-
-
-SCORE_COLUMNS = ["task", "learner", "steps", "score", "return", "best (optimistic)", "upd/s"]
-SCORE_TITLE = "Last evaluation (D4RL-normalized score; best over all evaluations apart)"
-
-
-def _pm(mean: float | None, std: float | None, fmt: str) -> str:
-    return "n/a" if mean is None else f"{fmt.format(mean)} ± {fmt.format(std or 0.0)}"
+        evaluations.append({"step": model.step, **evaluate().summary()})
+    return train_seconds

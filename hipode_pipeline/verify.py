@@ -14,6 +14,10 @@ Definitions (per transition):
   std (default tolerance 0.1: a tenth of a std per dimension).
 - novelty: L2 distance from s'_synthetic to the nearest source state, in z-scored units (the
   same measure `hipode augment` reports).
+
+Everything read from the artifact's manifest is data: the env id is checked against gymnasium's
+own registry before an env is built, and the source it names (`source.id`) is opened only inside
+the dataset root (`load_recorded_source`), unless the caller names the source itself.
 """
 
 from __future__ import annotations
@@ -31,8 +35,7 @@ import torch
 
 from hipode_pipeline import console
 from hipode_pipeline.artifact import read_artifact
-from hipode_pipeline.augment import derive_seed, novelty
-from hipode_pipeline.data.load import load_source
+from hipode_pipeline.data.load import load_recorded_source, load_source
 from hipode_pipeline.data.normalizer import StateNormalizer
 from hipode_pipeline.data.transitions import Transitions
 from hipode_pipeline.device import select_device
@@ -45,6 +48,7 @@ from hipode_pipeline.files import (
     write_json_atomic,
     write_text_atomic,
 )
+from hipode_pipeline.generate import novelty
 from hipode_pipeline.models import training
 from hipode_pipeline.models.cvae import CVAE
 from hipode_pipeline.models.generators import (
@@ -55,6 +59,7 @@ from hipode_pipeline.models.generators import (
     train_generators,
 )
 from hipode_pipeline.paths import use_datasets_root
+from hipode_pipeline.seeding import derive_seed
 from hipode_pipeline.simulator import check_env_id, clipped_velocity_rows, step_from_observations
 
 # a tenth of a source std per next-state dimension (and of the reward std) counts as authentic
@@ -293,7 +298,7 @@ def behaviour_cvae(
     training record."""
     weights = cache_dir / f"behaviour_cvae-{config.hash()[:12]}-seed{seed}.pt"
     record_path = weights.with_suffix(".json")
-    with training.seeded_init(training.derive_seed(seed, "init:behaviour_cvae")):
+    with training.seeded_init(derive_seed(seed, "init:behaviour_cvae")):
         model = CVAE(
             source.act_dim,
             source.obs_dim,
@@ -401,15 +406,16 @@ def _artifact_generators(
     show_progress: bool,
 ) -> tuple[Generators, dict[str, Any]]:
     """The generators the artifact was made with (from the cache when present)."""
+    recorded = _manifest_value(artifact_path, manifest, "hyper_parameters.generator_config", dict)
+    seed = _manifest_value(artifact_path, manifest, "seeds.generator_training", int)
     try:
-        config = GeneratorConfig.from_dict(manifest["hyper_parameters"]["generator_config"])
-        seed = int(manifest["seeds"]["generator_training"])
-    except (KeyError, TypeError) as error:
+        config = GeneratorConfig.from_dict(recorded)
+    except (KeyError, TypeError, ValueError, SettingError) as error:
         raise DataFormatError(
             artifact_path,
             "manifest.hyper_parameters.generator_config",
-            "the generator config and seeds the artifact was made with",
-            repr(error),
+            "the generator config the artifact was made with (GeneratorConfig's fields)",
+            str(error) or repr(error),
         ) from None
     cache_root = root / "cache" / "generators"
     cache_dir = cache_dir_for(cache_root, source_sha256, config, seed)
@@ -435,10 +441,38 @@ def _artifact_generators(
         "dynamics_sha256": generators.checkpoint_hashes["dynamics"],
         "dynamics_matches_artifact": stored_hash == generators.checkpoint_hashes["dynamics"],
         "dynamics_sampling": "ensemble mean"
-        if manifest["hyper_parameters"].get("dynamics_mean")
+        if _dynamics_mean(artifact_path, manifest)
         else "random member's Gaussian sample",
     }
     return generators, details
+
+
+def _manifest_value(path: Path, manifest: dict[str, Any], dotted: str, kind: type) -> Any:
+    """`manifest[a][b]...` when present with type `kind`; else a DataFormatError naming
+    `manifest.<dotted>` (the readers check types of keys that are present; this one is needed)."""
+    value: Any = manifest
+    for part in dotted.split("."):
+        value = value.get(part) if isinstance(value, dict) else None
+    ok = isinstance(value, kind) and not (isinstance(value, bool) and kind is not bool)
+    if not ok:
+        names = {str: "a string", int: "an integer", dict: "an object", bool: "a boolean"}
+        raise DataFormatError(
+            path,
+            f"manifest.{dotted}",
+            f"{names.get(kind, kind.__name__)} (hipode verify needs it)",
+            "nothing (missing)" if value is None else f"{type(value).__name__} {value!r:.60}",
+        )
+    return value
+
+
+def _dynamics_mean(path: Path, manifest: dict[str, Any]) -> bool:
+    params = _manifest_value(path, manifest, "hyper_parameters", dict)
+    value = params.get("dynamics_mean", False)
+    if not isinstance(value, bool):
+        raise DataFormatError(
+            path, "manifest.hyper_parameters.dynamics_mean", "a boolean", repr(value)
+        )
+    return value
 
 
 def verify_artifact(
@@ -454,10 +488,15 @@ def verify_artifact(
     behaviour: BehaviourCVAEConfig | None = None,
     device: str | None = None,
     show_progress: bool = True,
+    source_spec: str | None = None,
 ) -> VerifyReport:
     """Check a seeded sample of `sample` synthetic transitions (and as many plain model
     rollouts unless `baseline` is False) against the simulator; write the JSON report and the
-    novelty-vs-authenticity PNG (atomically; existing outputs need `force`)."""
+    novelty-vs-authenticity PNG (atomically; existing outputs need `force`).
+
+    The source is the one the manifest names (`source.id`, resolved only inside the dataset
+    root), or `source_spec` when the caller gives one; its content hash must match the
+    manifest's."""
     if sample < 1:
         raise SettingError(f"verify setting 'sample': expected a positive integer, found {sample}")
     if not (tolerance > 0 and np.isfinite(tolerance)):
@@ -471,29 +510,36 @@ def verify_artifact(
         raise OverwriteError(f"{', '.join(existing)} already exist(s); pass --force to replace")
     seconds: dict[str, float] = {}
     clock = time.perf_counter()
-    root = use_datasets_root(root)
+    # the artifact and the fields used below are checked before anything is created or trained
     artifact = read_artifact(path)
     manifest = artifact.manifest
-    env_id = manifest.get("env_id")
+    env_id = _manifest_value(path, manifest, "env_id", str)
     # the id came from a file: refuse anything gymnasium does not implement before building it
     check_env_id(env_id, origin=path)
-    source_record = manifest.get("source") or {}
-    source, info = load_source(str(source_record.get("id")), root)
-    if info.sha256 != source_record.get("sha256"):
+    source_id = _manifest_value(path, manifest, "source.id", str)
+    source_sha256 = _manifest_value(path, manifest, "source.sha256", str)
+    eps = _normalizer_eps(path, manifest)
+    if baseline:
+        _manifest_value(path, manifest, "hyper_parameters.generator_config", dict)
+        _manifest_value(path, manifest, "seeds.generator_training", int)
+        _dynamics_mean(path, manifest)
+    root = use_datasets_root(root)
+    if source_spec is None:
+        source, info = load_recorded_source(
+            source_id, root, origin=path, field="manifest.source.id"
+        )
+    else:
+        source, info = load_source(source_spec, root)
+    if info.sha256 != source_sha256:
         raise DataFormatError(
             path,
-            "source.sha256",
-            f"the content hash of the source it was built from ({source_record.get('id')})",
-            f"{info.sha256} in the local copy, {source_record.get('sha256')} in the manifest",
+            "manifest.source.sha256",
+            f"the content hash of the source it was built from ({info.id})",
+            f"{info.sha256} in the local copy, {source_sha256} in the manifest",
         )
     seconds["load"] = time.perf_counter() - clock
 
     torch_device = select_device(device)
-    eps = float(
-        (manifest.get("hyper_parameters") or {})
-        .get("generator_config", {})
-        .get("normalizer_eps", GeneratorConfig().normalizer_eps)
-    )
     normalizer = StateNormalizer.fit(source.observations, eps=eps)
     source_norm = normalizer.normalize(torch.as_tensor(source.observations, device=torch_device))
     next_state_std = source.next_observations.astype(np.float64).std(axis=0)
@@ -543,7 +589,7 @@ def verify_artifact(
                 env_id=env_id,
                 count=len(synthetic),
                 seed=seed,
-                use_mean=bool(manifest["hyper_parameters"].get("dynamics_mean", False)),
+                use_mean=_dynamics_mean(path, manifest),
             )
             seconds["baseline_models"] = time.perf_counter() - clock
             clock = time.perf_counter()
@@ -575,6 +621,21 @@ def verify_artifact(
     report.seconds = {name: round(value, 3) for name, value in seconds.items()}
     _write_json_atomic(json_path, report.to_dict())
     return report
+
+
+def _normalizer_eps(path: Path, manifest: dict[str, Any]) -> float:
+    """The generators' normalizer eps from the manifest (the default when not recorded)."""
+    params = manifest.get("hyper_parameters")
+    config = params.get("generator_config") if isinstance(params, dict) else None
+    value = (config or {}).get("normalizer_eps", GeneratorConfig().normalizer_eps)
+    if isinstance(value, bool) or not isinstance(value, int | float) or not value > 0:
+        raise DataFormatError(
+            path,
+            "manifest.hyper_parameters.generator_config.normalizer_eps",
+            "a positive number",
+            repr(value),
+        )
+    return float(value)
 
 
 def plot_novelty_vs_error(report: VerifyReport, path: Path) -> None:

@@ -5,6 +5,8 @@ Every dataset, artifact and run folder records this, so a result can be traced t
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import platform
 import subprocess
 from importlib import metadata
@@ -13,6 +15,11 @@ from pathlib import Path
 import hipode_pipeline
 
 VERSIONED_PACKAGES = ("torch", "numpy", "h5py", "gymnasium", "mujoco", "minari")
+PACKAGE_DIR = Path(hipode_pipeline.__file__).resolve().parent
+# the source files whose code determines trained generators (package-relative; folders whole)
+GENERATOR_CODE = ("models", "data/normalizer.py", "seeding.py")
+# ... and those that determine an artifact's rows beyond its generators
+ARTIFACT_CODE = (*GENERATOR_CODE, "generate.py", "envs.py", "augment.py", "artifact.py")
 
 
 def package_versions() -> dict[str, str | None]:
@@ -44,3 +51,22 @@ def git_commit() -> str | None:
     except (OSError, subprocess.SubprocessError):
         return None
     return done.stdout.strip() or None if done.returncode == 0 else None
+
+
+def code_digest(parts: tuple[str, ...]) -> str:
+    """sha256 over the bytes of the package's .py files under `parts` (relative paths and
+    contents): caches keyed on it are rebuilt when that code changes, and only then."""
+    return _code_digest(PACKAGE_DIR, tuple(parts))
+
+
+@functools.cache
+def _code_digest(package_dir: Path, parts: tuple[str, ...]) -> str:
+    digest = hashlib.sha256()
+    files: set[Path] = set()
+    for part in parts:
+        path = package_dir / part
+        files.update(path.rglob("*.py") if path.is_dir() else [path])
+    for path in sorted(files):
+        digest.update(path.relative_to(package_dir).as_posix().encode() + b"\0")
+        digest.update(path.read_bytes() + b"\0")
+    return digest.hexdigest()

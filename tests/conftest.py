@@ -7,8 +7,10 @@ import os
 import pytest
 import torch
 
-# Two test workers on two cores: one torch thread each avoids oversubscription.
+# Two test workers on two cores: one torch thread each avoids oversubscription (stage one
+# reads OMP_NUM_THREADS for its own thread count, subprocesses inherit it).
 torch.set_num_threads(1)
+os.environ["OMP_NUM_THREADS"] = "1"
 os.environ.setdefault("MUJOCO_GL", "disable")
 
 

@@ -8,13 +8,16 @@ import pytest
 
 from hipode_pipeline.artifact import (
     MANIFEST_ATTR,
-    default_artifact_path,
+    manifest_checksum,
     read_artifact,
     read_manifest,
+    seal_manifest,
     write_artifact,
 )
+from hipode_pipeline.contract import default_artifact_path, table_settings
 from hipode_pipeline.data.transitions import Transitions
 from hipode_pipeline.errors import DataFormatError, DatasetNotFoundError, OverwriteError
+from hipode_pipeline.tasks import get_task
 
 M, OBS_DIM, ACT_DIM = 300, 11, 3
 
@@ -53,9 +56,10 @@ def test_round_trip_keeps_arrays_and_manifest(artifact_file):
         np.testing.assert_array_equal(artifact.transitions.arrays()[name], array)
     for name, array in diagnostics.items():
         np.testing.assert_array_equal(artifact.diagnostics[name], array)
-    assert artifact.manifest["schema"] == {"name": "hipode-synthetic", "version": "1.0"}
+    assert artifact.manifest["schema"] == {"name": "hipode-synthetic", "version": "1.1"}
     assert artifact.manifest["task"] == "hopper-m-r"
     assert artifact.manifest["checksum"].startswith("sha256:")
+    assert artifact.manifest["manifest_checksum"] == manifest_checksum(artifact.manifest)
     assert read_manifest(artifact_file) == artifact.manifest
     # plain h5py (a D4RL-style loader) sees the usual keys
     with h5py.File(artifact_file, "r") as f:
@@ -127,11 +131,28 @@ def test_bad_manifest_is_rejected(artifact_file, change, field):
 
 
 def test_minor_version_is_accepted(artifact_file):
-    _edit_manifest(
-        artifact_file,
-        lambda m: json.dumps({**m, "schema": {"name": "hipode-synthetic", "version": "1.3"}}),
-    )
+    # a later minor's writer seals its manifest the same way
+    schema = {"name": "hipode-synthetic", "version": "1.3"}
+    _edit_manifest(artifact_file, lambda m: json.dumps(seal_manifest({**m, "schema": schema})))
     assert len(read_artifact(artifact_file)) == M
+
+
+def test_writer_stores_nonfinite_provenance_as_null(tmp_path):
+    transitions, diagnostics = _synthetic()
+    path = tmp_path / "nan.hdf5"
+    stored = write_artifact(path, transitions, diagnostics, {"summary": {"loss": float("nan")}})
+    assert stored["summary"] == {"loss": None}
+    assert read_manifest(path) == stored
+
+
+def test_writer_refuses_zero_rows_and_writes_nothing(tmp_path):
+    transitions, diagnostics = _synthetic()
+    empty = Transitions(**{k: v[:0] for k, v in transitions.arrays().items()})
+    with pytest.raises(DataFormatError, match="at least one synthetic transition"):
+        write_artifact(
+            tmp_path / "empty.hdf5", empty, {k: v[:0] for k, v in diagnostics.items()}, {}
+        )
+    assert not (tmp_path / "empty.hdf5").exists() and not list(tmp_path.glob(".empty*"))
 
 
 @pytest.mark.parametrize(
@@ -157,13 +178,22 @@ def test_damaged_datasets_are_rejected(artifact_file, name, replacement, message
 def test_missing_file_and_default_path(tmp_path, dataset_root):
     with pytest.raises(DatasetNotFoundError):
         read_artifact(tmp_path / "absent.hdf5")
-    path = default_artifact_path("hopper-medium-replay-v0", seed=3)
-    assert path == dataset_root / "artifacts" / "hopper-m-r-td3bc-seed3.hdf5"
+    task = get_task("hopper-medium-replay-v0")
+    path = default_artifact_path(task, table_settings(task, "iql"), seed=3)
+    # named by what it is (IQL's Table 7 row on hopper-m-r), not by who asked for it
+    assert (
+        path == dataset_root / "artifacts" / "hopper-m-r-eta0.05-lam1-n10-alpha1-sigma1-seed3.hdf5"
+    )
 
 
-# Schema regression: the checksum of schema 1.0 for fixed content. Files already written hold
-# this value, so a change in its order, encoding or field set would make them all unreadable.
+# Schema regression: the content checksum (unchanged since 1.0) and the manifest digest (since
+# 1.1) for fixed content. Files already written hold these values, so a change in their order,
+# encoding or field set would make them all unreadable.
 GOLDEN_CHECKSUM_1_0 = "sha256:3e8a55a4c4f446fd13463971e1e7aefc9ffdb37be0ab8613c6d6e9abacab6186"
+# sha256 of the canonical text {"checksum":"<GOLDEN_CHECKSUM_1_0>","schema":{...,"version":"1.1"}}
+GOLDEN_MANIFEST_CHECKSUM_1_1 = (
+    "sha256:8cb9578d334e265ae5400c5d4b6e2568dcbf47c63c8330b5d1233c2c9da71adf"
+)
 
 
 def test_checksum_of_schema_1_0_is_stable(tmp_path):
@@ -183,3 +213,4 @@ def test_checksum_of_schema_1_0_is_stable(tmp_path):
     stored = write_artifact(tmp_path / "golden.hdf5", transitions, diagnostics, {})
     assert stored["checksum"] == GOLDEN_CHECKSUM_1_0
     assert read_artifact(tmp_path / "golden.hdf5").manifest["checksum"] == GOLDEN_CHECKSUM_1_0
+    assert stored["manifest_checksum"] == GOLDEN_MANIFEST_CHECKSUM_1_1

@@ -7,10 +7,13 @@ import pytest
 from builders import make_episodes, make_minari_dataset
 from typer.testing import CliRunner
 
-from hipode_pipeline.artifact import default_artifact_path, read_artifact
-from hipode_pipeline.augment import summary_path, synthetic_count
+from hipode_pipeline.artifact import SCHEMA_VERSION, read_artifact
+from hipode_pipeline.augment import summary_path
 from hipode_pipeline.cli import app
+from hipode_pipeline.contract import ArtifactSettings, default_artifact_path, table_settings
 from hipode_pipeline.data import collect as collect_module
+from hipode_pipeline.generate import synthetic_count
+from hipode_pipeline.tasks import get_task
 
 
 @pytest.fixture(scope="module")
@@ -42,8 +45,13 @@ def test_augment_collects_writes_reuses_and_refuses(first_run):
     assert collected == ["hopper-m-r"]
     assert "collecting it first" in first.stderr
     summary = json.loads(first.stdout)
-    path = default_artifact_path("hopper-m-r", root=root)
+    quick_settings = ArtifactSettings(
+        **{**table_settings(get_task("hopper-m-r"), "td3bc").to_dict(), "profile": "quick"}
+    )
+    path = default_artifact_path(get_task("hopper-m-r"), quick_settings, root=root)
+    assert path.name == "hopper-m-r-eta0.5-lam0.2-n10-alpha1-sigma1-quick-seed0.hdf5"
     assert summary["artifact"] == str(path)
+    assert summary["table_row"] == {"learner": "td3bc", "table": "Table 6", "from_paper": True}
     assert summary["kept"] == synthetic_count(0.5, summary["n_source"])  # Table 6: eta = 0.5
     assert not summary["generators_cached"]
     assert set(summary["seconds"]) == {"load", "train", "generate", "write", "total"}
@@ -53,7 +61,7 @@ def test_augment_collects_writes_reuses_and_refuses(first_run):
     artifact = read_artifact(path)
     assert len(artifact) == summary["kept"]
     manifest = artifact.manifest
-    assert manifest["schema"] == {"name": "hipode-synthetic", "version": "1.0"}
+    assert manifest["schema"] == {"name": "hipode-synthetic", "version": SCHEMA_VERSION}
     assert manifest["env_id"] == "Hopper-v5"
     assert manifest["source"]["sha256"] == summary["source_sha256"]
     assert manifest["hyper_parameters"]["eta"] == 0.5 and manifest["hyper_parameters"]["lam"] == 0.2
@@ -74,7 +82,7 @@ def test_augment_collects_writes_reuses_and_refuses(first_run):
     )
 
     # other settings, same output, no --force: refused, file untouched
-    other = runner.invoke(app, [*quick, "--eta", "0.3"])
+    other = runner.invoke(app, [*quick, "--eta", "0.3", "--out", str(path)])
     assert other.exit_code != 0
     assert "--force" in other.stderr and "Traceback" not in other.output
     assert "generation.eta" in other.stderr  # says what differs

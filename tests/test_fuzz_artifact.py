@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from hipode_pipeline.artifact import MANIFEST_ATTR, read_artifact, write_artifact
+from hipode_pipeline.artifact import MANIFEST_ATTR, read_artifact, seal_manifest, write_artifact
 from hipode_pipeline.cli import app
 from hipode_pipeline.data.transitions import Transitions
 from hipode_pipeline.errors import DataFormatError
@@ -94,9 +94,19 @@ def _set_value(name, value):
 
 
 def _manifest(change):
+    """Edit the manifest and re-seal its digest, so the case tests its own rule (an edit the
+    digest catches is in test_hostile_artifacts.py)."""
+
     def mutate(path):
         with h5py.File(path, "r+") as f:
-            f.attrs[MANIFEST_ATTR] = change(json.loads(f.attrs[MANIFEST_ATTR]))
+            text = change(json.loads(f.attrs[MANIFEST_ATTR]))
+            try:
+                edited = json.loads(text)
+            except ValueError:
+                edited = None
+            if isinstance(edited, dict):
+                text = json.dumps(seal_manifest(edited))
+            f.attrs[MANIFEST_ATTR] = text
 
     return mutate
 

@@ -8,7 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from hipode_pipeline.augment import (
+from hipode_pipeline.data.normalizer import StateNormalizer
+from hipode_pipeline.data.transitions import Transitions
+from hipode_pipeline.envs import terminal_flags
+from hipode_pipeline.errors import DataFormatError
+from hipode_pipeline.generate import (
     GenerationConfig,
     SourceOrder,
     generate,
@@ -16,10 +20,6 @@ from hipode_pipeline.augment import (
     novelty,
     synthetic_count,
 )
-from hipode_pipeline.data.normalizer import StateNormalizer
-from hipode_pipeline.data.transitions import Transitions
-from hipode_pipeline.envs import terminal_flags
-from hipode_pipeline.errors import DataFormatError
 
 OBS_DIM, ACT_DIM, N_SOURCE = 11, 3, 500
 PARAMS = torch.Generator().manual_seed(123)

@@ -20,6 +20,7 @@ from hipode_pipeline.models.generators import (
     cache_dir_for,
     train_generators,
 )
+from hipode_pipeline.versions import GENERATOR_CODE, code_digest
 
 DS, DA = 5, 2
 TINY = dict(cvae_hidden=48, value_hidden=32, dynamics_hidden=(32, 32), dynamics_members=3)
@@ -87,7 +88,8 @@ def test_train_generators_contract_and_cache(transitions, tmp_path):
         transitions, sha, config, cache_root=tmp_path, seed=3, show_progress=False
     )
     folder = cache_dir_for(tmp_path, sha, config, 3)
-    assert folder.name == f"{sha[:16]}-{config.hash()[:12]}-seed3"
+    code = code_digest(GENERATOR_CODE)[:12]
+    assert folder.name == f"{sha[:16]}-{code}-{config.hash()[:12]}-seed3"
     names = {p.name for p in folder.iterdir()}
     assert {"config.json", "normalizer.json"} <= names
     assert {f"{m}.pt" for m in MODEL_NAMES} | {f"{m}.json" for m in MODEL_NAMES} <= names

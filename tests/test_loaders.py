@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from builders import make_d4rl_file, make_episodes, make_minari_dataset
 
+from hipode_pipeline.artifact import write_artifact
 from hipode_pipeline.data.d4rl_source import infer_timeouts, load_d4rl_hdf5
 from hipode_pipeline.data.load import (
     describe_source,
@@ -17,6 +18,7 @@ from hipode_pipeline.data.load import (
     task_for_env,
     task_from_file_name,
 )
+from hipode_pipeline.data.transitions import Transitions
 from hipode_pipeline.errors import DataFormatError
 from hipode_pipeline.tasks import get_task
 
@@ -72,7 +74,8 @@ def test_minari_refs_come_from_the_dataset_when_present_else_from_the_registry()
     )
     make_minari_dataset("test/hopper/no-refs-v0", episodes)
     make_minari_dataset("test/hopper/old-env-v0", episodes, env_id="Hopper-v2")
-    make_minari_dataset("test/foo/unknown-env-v0", episodes, env_id="Foo-v0")
+    # a gymnasium env no task runs on (an unregistered id is refused: tests/test_env_ids.py)
+    make_minari_dataset("test/foo/unknown-env-v0", episodes, env_id="CartPole-v1")
 
     _, own = load_source("test/hopper/with-refs-v0")
     _, registry = load_source("test/hopper/no-refs-v0")
@@ -90,7 +93,8 @@ def test_minari_refs_come_from_the_dataset_when_present_else_from_the_registry()
         hopper.ref_max_score,
     )
     assert registry.metadata["ref_scores_from"] == "registry"
-    assert old.env_id == "Hopper-v2" and old.ref_max_score == hopper.ref_max_score
+    assert old.env_id == "Hopper-v5" and old.ref_max_score == hopper.ref_max_score
+    assert old.metadata["env_id_original"] == "Hopper-v2"
     assert unknown.ref_min_score is None and unknown.metadata["ref_scores_from"] is None
     assert any("no reference scores" in note for note in unknown.metadata["notes"])
 
@@ -291,11 +295,24 @@ def test_float64_observations_are_cast_once_to_float32(tmp_path):
 
 
 def test_synthetic_artifact_rows_are_not_checked_for_episode_continuity(tmp_path):
-    independent = np.random.default_rng(1).normal(size=(15, 4)).astype(np.float32)
-    schema = {"schema": {"name": "hipode-synthetic", "version": "1.0"}, "env_id": "Hopper-v5"}
+    rng = np.random.default_rng(1)
+    independent = rng.normal(size=(15, 4)).astype(np.float32)
     common = dict(n=15, obs_dim=4, act_dim=2, seed=0, next_observations=independent)
-    make_d4rl_file(tmp_path / "artifact.hdf5", attrs={"manifest": json.dumps(schema)}, **common)
-    make_d4rl_file(tmp_path / "episodes.hdf5", **common)
+    rows = make_d4rl_file(tmp_path / "episodes.hdf5", **common)
+    synthetic = Transitions(
+        rows["observations"],
+        rows["actions"],
+        rows["rewards"],
+        independent,
+        np.zeros(15, bool),
+        np.zeros(15, bool),
+    )
+    diagnostics = {
+        "dynamics_error": rng.random(15).astype(np.float32),
+        "value": rng.random(15).astype(np.float32),
+        "source_index": np.arange(15),
+    }
+    write_artifact(tmp_path / "artifact.hdf5", synthetic, diagnostics, {"env_id": "Hopper-v5"})
 
     transitions, info = load_source(str(tmp_path / "artifact.hdf5"))
 

@@ -1,5 +1,6 @@
-"""bench/quality.py's machinery on tiny data: both arms on the same seed and budget, the
-artifact built when missing, the report files, resume/skip, and clear user errors."""
+"""The sweep engine (`hipode sweep`, and bench/quality.py, its thin caller) on tiny data: both
+arms on the same seed and budget, the artifact built when missing, the report files,
+resume/skip, several learners, and clear user errors."""
 
 from __future__ import annotations
 
@@ -12,40 +13,56 @@ from test_merge import write_source, write_synthetic
 from typer.testing import CliRunner
 
 from hipode_pipeline.artifact import read_artifact, read_manifest
+from hipode_pipeline.cli import app
+from hipode_pipeline.contract import ArtifactSettings, default_artifact_path, table_settings
 from hipode_pipeline.data.load import load_source
 from hipode_pipeline.errors import DataFormatError, HipodeError
+from hipode_pipeline.sweep import driver, engines, plan, report
+from hipode_pipeline.sweep.worker import RunSpec
+from hipode_pipeline.tasks import get_task
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
+BENCH = Path(__file__).resolve().parent.parent / "bench"
+sys.path.insert(0, str(BENCH))
 import quality  # noqa: E402
 
 TINY = ["--tasks", "hopper-m-r", "--seeds", "0", "--eval-every", "10", "--eval-episodes", "2"]
 
 
-def invoke(tmp_path, source, *extra):
+def sweep_args(tmp_path, source, *extra):
     args = [*TINY, "--source", str(source), "--profile", "quick", "--engine", "local"]
     args += ["--out", str(tmp_path / "out"), "--results", str(tmp_path / "results"), "--json"]
-    return CliRunner().invoke(quality.app, [*args, *extra])
+    return [*args, *extra]
 
 
-def test_quality_sweep_runs_both_arms_reports_and_resumes(tmp_path, dataset_root):
+def invoke(tmp_path, source, *extra):
+    """`hipode sweep` through the package's command line."""
+    return CliRunner().invoke(app, ["sweep", *sweep_args(tmp_path, source, *extra)])
+
+
+def test_sweep_runs_both_arms_reports_and_resumes(tmp_path, dataset_root):
     source = write_source(tmp_path / "source.hdf5", n_episodes=8)
     ablations = ["--lam", "1", "--union", "--artifact-seeds", "3"]
     first = invoke(tmp_path, source, "--steps", "20", *ablations)
     assert first.exit_code == 0, first.output
-    report = json.loads(first.stdout)
-    runs = {r["arm"]: r for r in report["runs"]}
+    result = json.loads(first.stdout)
+    runs = {r["arm"]: r for r in result["runs"]}
     assert set(runs) == {"eta0", "hipode", "lam1", "artifact-seed3", "mixing-union"}
-    assert all(r["status"] == "trained" for r in runs.values())
+    assert all(r["status"] == "trained" and r["learner"] == "td3bc" for r in runs.values())
+    # every run in its own folder, named by the sweep
+    out = tmp_path / "out" / "hopper-m-r"
+    for arm, run in runs.items():
+        assert Path(run["run_dir"]) == out / arm / "td3bc-seed0"
+        assert (out / arm / "td3bc-seed0" / "scores.json").is_file()
     # the ablation arm got its own artifact, built with its λ
-    ablation = read_manifest(tmp_path / "out" / "hopper-m-r" / "lam1" / "artifact.hdf5")
+    ablation = read_manifest(out / "lam1" / "artifact.hdf5")
     assert ablation["hyper_parameters"]["lam"] == 1.0 and ablation["seeds"]["seed"] == 0
-    # the control arm: the paper's settings, another stage-one seed
-    control = read_manifest(tmp_path / "out" / "hopper-m-r" / "artifact-seed3" / "artifact.hdf5")
+    # the control arm: the table's settings, another stage-one seed
+    control = read_manifest(out / "artifact-seed3" / "artifact.hdf5")
     assert control["seeds"]["seed"] == 3 and control["hyper_parameters"]["lam"] == 0.2
     # each arm's synthetic data is described against the real rewards at the same states
-    described = {a["name"]: a for a in report["arms"]["hopper-m-r"]}
-    lam1 = read_artifact(tmp_path / "out" / "hopper-m-r" / "lam1" / "artifact.hdf5")
-    real = load_source(str(source))[0]
+    described = {a["name"]: a for a in result["arms"]["hopper-m-r"]}
+    lam1 = read_artifact(out / "lam1" / "artifact.hdf5")
+    real, info = load_source(str(source))
     stats = described["lam1"]["synthetic"]
     assert described["eta0"]["synthetic"] is None
     assert stats["rows"] == len(lam1.transitions.rewards)
@@ -58,13 +75,21 @@ def test_quality_sweep_runs_both_arms_reports_and_resumes(tmp_path, dataset_root
         [p[0] for p in runs["eta0"]["curve"]] == [p[0] for p in runs["hipode"]["curve"]] == [10, 20]
     )
     assert runs["eta0"]["eta"] == 0.0 and runs["hipode"]["eta"] == 0.5  # Table 6
-    # the missing artifact was built through stage one under the dataset root
-    assert (dataset_root / "artifacts" / "hopper-m-r-td3bc-seed0.hdf5").is_file()
-    difference = report["summary"]["hopper-m-r"]["hipode"]["difference"]["eta0"]
+    # the missing artifact was built through stage one under the dataset root, named by the
+    # stage contract (the quick profile, this foreign source's tag)
+    task = get_task("hopper-m-r")
+    settings = ArtifactSettings(**{**table_settings(task, "td3bc").to_dict(), "profile": "quick"})
+    built = default_artifact_path(
+        task, settings, seed=0, root=dataset_root.resolve(), source_tag=info.sha256[:8]
+    )
+    assert built.is_file() and Path(described["hipode"]["artifact"]) == built
+    assert described["hipode"]["label"].startswith("TD3+BC: HIPODE")
+    difference = result["summary"]["hopper-m-r"]["hipode"]["difference"]["eta0"]
     assert difference["per_seed"] == [runs["hipode"]["final_score"] - runs["eta0"]["final_score"]]
     results = tmp_path / "results"
     assert (results / "quality.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert json.loads((results / "quality.json").read_text())["runs"] == report["runs"]
+    assert json.loads((results / "quality.json").read_text())["runs"] == result["runs"]
+    assert result["command"].startswith("hipode sweep --tasks hopper-m-r --seeds 0")
     markdown = (results / "quality.md").read_text()
     assert "| hopper-m-r | hipode |" in markdown
     assert f"| hopper-m-r | lam1 | {stats['rows']:,} | {stats['reward_mean']:.3f} |" in markdown
@@ -84,10 +109,17 @@ def test_quality_sweep_runs_both_arms_reports_and_resumes(tmp_path, dataset_root
     hipode_summary = longer["summary"]["hopper-m-r"]["hipode"]
     assert hipode_summary["curve_means"] == window  # three evaluations: all of them are the last 3
 
-    # --report-only trains nothing: finished runs are read back, a budget none reached fails
-    read = json.loads(invoke(tmp_path, source, "--steps", "30", "--report-only").stdout)
+    # bench/quality.py runs the same engine: --report-only trains nothing, reads the runs back
+    args = sweep_args(tmp_path, source, "--steps", "30", "--report-only")
+    args[args.index("--results") + 1] = str(tmp_path / "bench-results")
+    read = CliRunner().invoke(quality.app, args)
+    assert read.exit_code == 0, read.output
+    read = json.loads(read.stdout)
     assert [r["final_score"] for r in read["runs"]] == [r["final_score"] for r in longer["runs"]]
+    assert [r["status"] for r in read["runs"]] == ["finished earlier"] * 2
     assert read["budget"]["report_only"] is True
+    assert read["command"].startswith("python bench/quality.py --tasks hopper-m-r")
+    assert (tmp_path / "bench-results" / "quality.md").is_file()
     unreached = invoke(tmp_path, source, "--steps", "40", "--report-only")
     assert unreached.exit_code == 2 and "no finished runs" in unreached.output
 
@@ -96,8 +128,47 @@ def test_quality_sweep_runs_both_arms_reports_and_resumes(tmp_path, dataset_root
     assert other.exit_code == 2 and "other settings" in other.output
 
 
+def test_sweep_over_learners_pairs_each_with_its_own_baseline(tmp_path, dataset_root):
+    source = write_source(tmp_path / "source.hdf5", n_episodes=8)
+    done = invoke(
+        tmp_path, source, "--learners", "td3bc,iql", "--steps", "10", "--eval-episodes", "1"
+    )
+    assert done.exit_code == 0, done.output
+    result = json.loads(done.stdout)
+    runs = {(r["learner"], r["arm"]): r for r in result["runs"]}
+    assert set(runs) == {
+        (learner, arm) for learner in ("td3bc", "iql") for arm in ("eta0", "hipode")
+    }
+    # each learner's hipode arm trains on its own table row's artifact at its own η (Table 7)
+    iql = json.loads((Path(runs["iql", "hipode"]["run_dir"]) / "config.json").read_text())
+    td3bc = json.loads((Path(runs["td3bc", "hipode"]["run_dir"]) / "config.json").read_text())
+    assert iql["learner"] == "iql" and iql["eta"] == 0.05 and td3bc["eta"] == 0.5
+    assert iql["artifact_hyper_parameters"]["lam"] == 1.0
+    assert td3bc["artifact_hyper_parameters"]["lam"] == 0.2
+    summary = result["summary"]["hopper-m-r"]
+    assert set(summary) == {"td3bc/eta0", "td3bc/hipode", "iql/eta0", "iql/hipode"}
+    for learner in ("td3bc", "iql"):  # paired with the same learner's eta0, seed by seed
+        per_seed = summary[f"{learner}/hipode"]["difference"]["eta0"]["per_seed"]
+        mine = runs[learner, "hipode"]["final_score"] - runs[learner, "eta0"]["final_score"]
+        assert per_seed == [pytest.approx(mine)]
+    assert "| hopper-m-r | iql/hipode |" in (tmp_path / "results" / "quality.md").read_text()
+
+
+def test_bench_quality_is_the_package_command_with_the_repository_defaults():
+    shown = CliRunner().invoke(quality.app, ["--help"], env={"COLUMNS": "200"})
+    assert shown.exit_code == 0, shown.output
+    assert "bench/results" in shown.output and "bench/out/quality" in shown.output
+    assert "--learners" in shown.output and "--engine" in shown.output
+    # the engine lives in the package: the script holds no sweep code of its own
+    text = (BENCH / "quality.py").read_text()
+    assert "def run_" not in text and "hipode_pipeline.commands.sweep" in text
+    package = CliRunner().invoke(app, ["sweep", "--help"], env={"COLUMNS": "200"})
+    assert "runs/sweep" in package.output and "OUT/report" in package.output
+    assert "bench/results" not in package.output
+
+
 def test_ablation_arms_and_budget_checks():
-    config = quality.QualityConfig(
+    config = plan.SweepConfig(
         alphas=[-1, 8],
         uniform=True,
         lams=[0.2, 1.0],
@@ -105,7 +176,7 @@ def test_ablation_arms_and_budget_checks():
         union=True,
         artifact_seeds=[1],
     )
-    arms = quality.arms_for(config)
+    arms = plan.arms_for(config)
     assert [a.name for a in arms] == [
         "eta0",
         "hipode",
@@ -122,17 +193,21 @@ def test_ablation_arms_and_budget_checks():
     assert arms[-1].mixing == "union"
     assert arms[4].augment == {"candidates": "uniform"} and arms[0].data == "source"
     with pytest.raises(HipodeError, match="artifact-seeds"):
-        quality.arms_for(quality.QualityConfig(artifact_seeds=[0]))  # the hipode arm itself
+        plan.arms_for(plan.SweepConfig(artifact_seeds=[0]))  # the hipode arm itself
     with pytest.raises(HipodeError, match="other than 1"):
-        quality.arms_for(quality.QualityConfig(artifact_seed=1, artifact_seeds=[0, 1]))
-    command = quality.command_line(quality.QualityConfig(artifact_seed=1, artifact_seeds=[2]))
+        plan.arms_for(plan.SweepConfig(artifact_seed=1, artifact_seeds=[0, 1]))
+    command = driver.command_line(plan.SweepConfig(artifact_seed=1, artifact_seeds=[2]))
     assert "--artifact-seed 1 --artifact-seeds 2" in command
     with pytest.raises(HipodeError, match="no repeats"):
-        quality.arms_for(quality.QualityConfig(alphas=[1, 1]))
+        plan.arms_for(plan.SweepConfig(alphas=[1, 1]))
     with pytest.raises(HipodeError, match="divisor"):
-        quality.resolve_budget(quality.QualityConfig(steps=100, eval_every=30))
+        plan.resolve_budget(plan.SweepConfig(steps=100, eval_every=30))
+    with pytest.raises(HipodeError, match="--learners: expected distinct learners"):
+        plan.check_learners(["td3bc", "d3rlpy:CQL"])
+    from hipode_pipeline.commands.sweep import parse_list
+
     with pytest.raises(HipodeError, match="--seeds"):
-        quality.parse_list("0,x", int, "--seeds")
+        parse_list("0,x", int, "--seeds")
 
 
 def test_paired_difference_pairs_seeds():
@@ -143,23 +218,50 @@ def test_paired_difference_pairs_seeds():
         {"arm": "hipode", "seed": 0, "final_score": 12.0},
         {"arm": "hipode", "seed": 1, "final_score": 24.0},
     ]
-    diff = quality.paired_difference(runs, "hipode", "eta0")
+    diff = report.paired_difference(runs, "hipode", "eta0")
     assert diff["seeds"] == [0, 1] and diff["per_seed"] == [2.0, 4.0]  # seed 2 has no pair
     assert diff["mean"] == pytest.approx(3.0) and diff["sem"] == pytest.approx(1.0)
 
 
 def test_ray_engine_without_ray_names_the_install(monkeypatch):
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray raises ImportError
-    spec = quality.RunSpec("hopper-m-r", "eta0", "source", 0.0, 0, 10, 10, 1, "out", "root")
+    spec = RunSpec("hopper-m-r", "eta0", "source", 0.0, 0, 10, 10, 1, "out", "root")
     with pytest.raises(HipodeError, match=r"pip install 'hipode-pipeline\[ray\]'"):
-        next(quality.run_ray([spec], None, 1))
+        next(engines.run_ray([spec], None, 1))
+
+
+def test_ray_engine_runs_a_tiny_sweep(tmp_path):
+    pytest.importorskip(
+        "ray", reason="ray is not installed here (the optional extra hipode-pipeline[ray])"
+    )
+    source = write_source(tmp_path / "source.hdf5", n_episodes=8)
+    write_synthetic(tmp_path / "art.hdf5", source)
+    done = invoke(
+        tmp_path,
+        source,
+        "--artifact",
+        str(tmp_path / "art.hdf5"),
+        "--steps",
+        "10",
+        "--eval-episodes",
+        "1",
+        "--engine",
+        "ray",
+        "--workers",
+        "1",
+    )
+    assert done.exit_code == 0, done.output
+    result = json.loads(done.stdout)
+    assert {r["arm"] for r in result["runs"]} == {"eta0", "hipode"}
+    assert all(r["status"] == "trained" for r in result["runs"])
+    assert result["machine"]["engine"] == "ray"
 
 
 def test_synthetic_stats_refuse_an_artifact_of_another_source(tmp_path):
     source = write_source(tmp_path / "source.hdf5")
     other = write_source(tmp_path / "other.hdf5", seed=1)
     write_synthetic(tmp_path / "art.hdf5", source)
-    stats = quality.synthetic_stats(tmp_path / "art.hdf5", load_source(str(source)))
+    stats = plan.synthetic_stats(tmp_path / "art.hdf5", load_source(str(source)))
     assert stats["rows"] == 20
     with pytest.raises(DataFormatError, match="sha256"):
-        quality.synthetic_stats(tmp_path / "art.hdf5", load_source(str(other)))
+        plan.synthetic_stats(tmp_path / "art.hdf5", load_source(str(other)))

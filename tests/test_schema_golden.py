@@ -2,7 +2,8 @@
 
 A failure here means the schema changed. If that was intended: bump SCHEMA_VERSION (major for
 changed or removed fields, minor for additions), update docs/schema.md, and rebuild the
-reference with `python tests/data/make_reference_artifact.py`.
+reference with `python tests/data/make_reference_artifact.py`. Files of older minor versions
+stay committed (never rebuilt): every reader of the same major must keep reading them.
 """
 
 import importlib.util
@@ -11,11 +12,15 @@ from pathlib import Path
 
 import h5py
 import numpy as np
+import pytest
 
 from hipode_pipeline.artifact import (
     MANIFEST_ATTR,
+    MANIFEST_CHECKSUM_KEY,
     content_checksum,
+    manifest_checksum,
     read_artifact,
+    read_manifest,
     write_artifact,
 )
 from hipode_pipeline.files import file_sha256
@@ -24,6 +29,11 @@ from hipode_pipeline.validation import schema_description, validate_artifact
 DATA = Path(__file__).parent / "data"
 SCHEMA = json.loads((DATA / "artifact_schema.json").read_text())
 REFERENCE = DATA / SCHEMA["reference_file"]["name"]
+LEGACY = {
+    version: DATA / entry["name"] for version, entry in SCHEMA["legacy_reference_files"].items()
+}
+# keys of the committed description that name files rather than rules
+FILE_KEYS = ("reference_file", "legacy_reference_files")
 BUMP = "the artifact schema changed: bump SCHEMA_VERSION and update docs/schema.md"
 
 
@@ -62,7 +72,7 @@ def test_committed_reference_reads_and_validates():
 
 
 def test_rules_in_code_match_the_committed_description():
-    described = {key: value for key, value in SCHEMA.items() if key != "reference_file"}
+    described = {key: value for key, value in SCHEMA.items() if key not in FILE_KEYS}
     assert schema_description() == described, BUMP
 
 
@@ -84,3 +94,27 @@ def test_committed_reference_is_unchanged():
     artifact = read_artifact(REFERENCE)
     arrays = {**artifact.transitions.arrays(), **artifact.diagnostics}
     assert content_checksum(arrays) == artifact.manifest["checksum"]
+
+
+def test_committed_reference_carries_a_matching_manifest_digest():
+    manifest = read_manifest(REFERENCE)
+    assert manifest[MANIFEST_CHECKSUM_KEY] == manifest_checksum(manifest)
+
+
+@pytest.mark.parametrize("version", sorted(LEGACY))
+def test_older_minor_references_stay_readable(version):
+    path = LEGACY[version]
+    assert file_sha256(path) == SCHEMA["legacy_reference_files"][version]["sha256"], (
+        f"{path.name} changed; older references are kept as they were written"
+    )
+    old, current = read_artifact(path), read_artifact(REFERENCE)
+    assert old.manifest["schema"] == {"name": "hipode-synthetic", "version": version}
+    # same rows, same content checksum: the checksum's definition did not change within 1.x
+    assert old.manifest["checksum"] == current.manifest["checksum"]
+    report = validate_artifact(path)
+    assert report.valid, report.to_dict()
+    # 1.0 predates the manifest digest: valid, with a warning that names the version
+    assert [(v.field, v.severity) for v in report.violations] == [
+        ("manifest.manifest_checksum", "warning")
+    ]
+    assert version in report.violations[0].found

@@ -9,7 +9,7 @@ import pytest
 from builders import make_d4rl_file
 from typer.testing import CliRunner
 
-from hipode_pipeline.artifact import read_artifact, write_artifact
+from hipode_pipeline.artifact import SCHEMA_VERSION, read_artifact, write_artifact
 from hipode_pipeline.cli import app
 from hipode_pipeline.data.load import load_source
 from hipode_pipeline.data.transitions import Transitions
@@ -104,7 +104,7 @@ def test_import_validates_and_copies_into_the_root(pair, tmp_path, dataset_root)
         "hopper-m-r",
         "Hopper-v5",
         M,
-        "1.0",
+        SCHEMA_VERSION,
     )
 
 
@@ -116,9 +116,8 @@ def test_import_refuses_a_tampered_file_and_copies_nothing(pair, tmp_path, datas
     _tamper(tampered)
     result = CliRunner().invoke(app, ["import", str(tampered)])
     assert result.exit_code == 2 and "checksum" in result.output
-    assert not (dataset_root / "artifacts").exists() or not any(
-        (dataset_root / "artifacts").iterdir()
-    )
+    # not even the folder: it was made only for the import's lock
+    assert not (dataset_root / "artifacts").exists()
 
 
 def test_import_checks_the_sidecar_hash(pair, tmp_path, dataset_root):
@@ -128,7 +127,7 @@ def test_import_checks_the_sidecar_hash(pair, tmp_path, dataset_root):
     sidecar_path(exported).write_text("0" * 64 + f"  {artifact.name}\n")
     with pytest.raises(DataFormatError, match="sha256"):
         import_artifact(exported)
-    assert not any((dataset_root / "artifacts").iterdir())
+    assert not (dataset_root / "artifacts").exists()
 
 
 def test_export_d4rl_writes_the_merge(pair, tmp_path):

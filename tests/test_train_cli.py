@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -13,11 +14,13 @@ from test_merge import write_source, write_synthetic
 from typer.testing import CliRunner
 
 import hipode_pipeline.train as train_module
-from hipode_pipeline.artifact import default_artifact_path
+from hipode_pipeline import run_folder
 from hipode_pipeline.cli import app
+from hipode_pipeline.contract import default_artifact_path, table_settings
 from hipode_pipeline.data.transitions import Transitions
 from hipode_pipeline.errors import OverwriteError
 from hipode_pipeline.learners.external import episode_arrays
+from hipode_pipeline.tasks import get_task
 from hipode_pipeline.train import run_training
 
 TINY = ["--steps", "20", "--eval-every", "10", "--eval-episodes", "2", "--batch-size", "32"]
@@ -49,7 +52,10 @@ def test_train_cli_writes_run_folder_and_scores(tmp_path, tiny_pair):
     )
     assert result.exit_code == 0, result.output
     scores = json.loads(result.stdout)
-    run_dir = tmp_path / "runs" / "hopper-m-r" / "td3bc-merged-seed0"
+    run_dir = Path(scores["run_dir"])
+    assert run_dir.parent == tmp_path / "runs" / "hopper-m-r"
+    # learner, data and η readable; the identity (source, artifact, settings) keeps sweeps apart
+    assert re.fullmatch(r"td3bc-merged-eta0\.5-[0-9a-f]{8}-seed0", run_dir.name), run_dir.name
     assert (
         scores["run_dir"] == str(run_dir) and scores["steps"] == 20 and scores["eta"] == 0.5
     )  # Table 6
@@ -72,14 +78,18 @@ def test_train_cli_writes_run_folder_and_scores(tmp_path, tiny_pair):
 def test_train_task_with_defaults_uses_collected_data_and_augment_artifact(tmp_path):
     """What `make train TASK=hopper-m-r` does after `make collect` and `make augment`."""
     make_minari_dataset("local/hopper/medium-replay-v0", make_episodes(6, 11, 3, seed=0))
-    artifact = default_artifact_path("hopper-m-r")
+    task = get_task("hopper-m-r")
+    settings = table_settings(task, "td3bc")
+    artifact = default_artifact_path(task, settings)
     artifact.parent.mkdir(parents=True)
-    write_synthetic(artifact, "hopper-m-r")
+    write_synthetic(artifact, "hopper-m-r", hyper_parameters=settings.to_dict(), seeds={"seed": 0})
     result = CliRunner().invoke(
         app, ["train", "hopper-m-r", *TINY, "--out", str(tmp_path), "--json"]
     )
     assert result.exit_code == 0, result.output
-    config = json.loads((tmp_path / "hopper-m-r/td3bc-merged-seed0/config.json").read_text())
+    run_dir = Path(json.loads(result.stdout)["run_dir"])
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["artifact_choice"] == "table" and config["artifact_seed"] == 0
     assert config["source_id"] == "local/hopper/medium-replay-v0"
     assert config["artifact_path"] == str(artifact) and config["n_synthetic"] == 20
 
@@ -102,8 +112,11 @@ def test_table_output_and_finished_run_is_not_retrained(tmp_path, tiny_pair):
     first = CliRunner().invoke(app, args)
     assert first.exit_code == 0, first.output
     assert "D4RL-normalized" in first.stdout and "iql" in first.stdout
+    # a finished run again (a `set -e` seed loop): its stored scores, exit 0, nothing retrained
     again = CliRunner().invoke(app, args)
-    assert again.exit_code == OverwriteError.exit_code and "already finished" in again.output
+    assert again.exit_code == 0, again.output
+    assert "already finished 20 updates" in again.stderr
+    assert first.stdout == again.stdout
 
 
 def test_missing_artifact_tells_the_user_to_augment(tiny_pair):
@@ -141,16 +154,15 @@ def test_interrupted_run_resumes_exactly(tmp_path, tiny_pair, monkeypatch):
     resumed = run_training("hopper-m-r", out_dir=tmp_path / "b", **common)
     assert resumed.resumed_from == 10 and resumed.steps == 30
     assert resumed.evaluations == reference.evaluations
-    a = torch.load(tmp_path / "a/hopper-m-r/td3bc-merged-seed0/checkpoint.pt", weights_only=True)
-    b = torch.load(tmp_path / "b/hopper-m-r/td3bc-merged-seed0/checkpoint.pt", weights_only=True)
+    assert Path(reference.run_dir).name == Path(resumed.run_dir).name
+    a = torch.load(Path(reference.run_dir) / "checkpoint.pt", weights_only=True)
+    b = torch.load(Path(resumed.run_dir) / "checkpoint.pt", weights_only=True)
     for key in a["learner"]["modules"]:
         for name, tensor in a["learner"]["modules"][key].items():
             assert torch.equal(tensor, b["learner"]["modules"][key][name]), (key, name)
     steps = [
         json.loads(x)["step"]
-        for x in (tmp_path / "b/hopper-m-r/td3bc-merged-seed0/metrics.jsonl")
-        .read_text()
-        .splitlines()
+        for x in (Path(resumed.run_dir) / "metrics.jsonl").read_text().splitlines()
     ]
     assert steps == [10, 20, 30]
 
@@ -166,16 +178,19 @@ def test_rerun_with_other_settings_is_refused(tmp_path, tiny_pair):
         batch_size=16,
         show_progress=False,
     )
-    result = run_training("hopper-m-r", out_dir=tmp_path, **common)
+    result = run_training("hopper-m-r", out_dir=tmp_path, name="fixed", **common)
+    # one --name, other data settings: refused before anything in the folder changes
+    before = {p.name: p.stat().st_mtime_ns for p in Path(result.run_dir).iterdir()}
     with pytest.raises(OverwriteError, match="eta"):
-        run_training("hopper-m-r", out_dir=tmp_path, eta=0.1, **{**common, "steps": 20})
+        run_training("hopper-m-r", out_dir=tmp_path, eta=0.1, name="fixed", **common)
+    assert {p.name: p.stat().st_mtime_ns for p in Path(result.run_dir).iterdir()} == before
     # the read-only check a sweep uses: finished at this budget, not at a longer one
     run_dir = Path(result.run_dir)
     same = {"eta": result.eta, "seed": 0, "data": "merged"}
-    assert train_module.finished_scores(run_dir, 10, same)["steps"] == 10
-    assert train_module.finished_scores(run_dir, 20, same) is None
+    assert run_folder.finished_scores(run_dir, 10, same)["steps"] == 10
+    assert run_folder.finished_scores(run_dir, 20, same) is None
     with pytest.raises(OverwriteError, match="seed"):
-        train_module.finished_scores(run_dir, 10, {**same, "seed": 1})
+        run_folder.finished_scores(run_dir, 10, {**same, "seed": 1})
 
 
 def small_transitions() -> Transitions:

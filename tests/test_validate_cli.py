@@ -8,7 +8,7 @@ import h5py
 import numpy as np
 from typer.testing import CliRunner
 
-from hipode_pipeline.artifact import MANIFEST_ATTR, read_artifact
+from hipode_pipeline.artifact import MANIFEST_ATTR, read_artifact, seal_manifest
 from hipode_pipeline.cli import app
 
 REFERENCE = Path(__file__).parent / "data" / "reference_artifact.hdf5"
@@ -27,7 +27,7 @@ def test_validate_accepts_the_reference(tmp_path):
     assert report == {
         "valid": True,
         "path": str(REFERENCE),
-        "schema": {"name": "hipode-synthetic", "version": "1.0"},
+        "schema": {"name": "hipode-synthetic", "version": "1.1"},
         "violations": [],
     }
 
@@ -42,9 +42,13 @@ def test_validate_lists_every_violation_in_the_table(tmp_path):
         )
     result = CliRunner().invoke(app, ["validate", str(path)], terminal_width=200)
     assert result.exit_code == 1
-    for field in ("rewards", "value", "manifest.task"):
-        assert field in result.stdout
-    assert "invalid" in result.stderr and "3 error(s)" in result.stderr
+    # the table's cells wrap with the path's length: read the fields from the --json listing
+    listed = CliRunner().invoke(app, ["validate", str(path), "--json"])
+    fields = {v["field"] for v in json.loads(listed.stdout)["violations"]}
+    assert {"rewards", "value", "manifest.task", "manifest.manifest_checksum"} <= fields
+    assert "rewards" in result.stdout and "Invalid" in result.stdout
+    # the task edit is also a manifest the digest no longer matches
+    assert "invalid" in result.stderr and "4 error(s)" in result.stderr
 
 
 def test_warnings_alone_keep_a_file_valid(tmp_path):
@@ -52,7 +56,8 @@ def test_warnings_alone_keep_a_file_valid(tmp_path):
     with h5py.File(path, "r+") as f:
         manifest = json.loads(f.attrs[MANIFEST_ATTR])
         del manifest["seeds"]
-        f.attrs[MANIFEST_ATTR] = json.dumps(manifest)
+        # re-sealed: an edit the digest does not catch, so only the warning remains
+        f.attrs[MANIFEST_ATTR] = json.dumps(seal_manifest(manifest))
     result = CliRunner().invoke(app, ["validate", str(path), "--json"])
     assert result.exit_code == 0, result.output
     violations = json.loads(result.stdout)["violations"]
@@ -71,7 +76,7 @@ def test_inspect_shows_manifest_and_statistics():
     assert result.exit_code == 0, result.output
     summary = json.loads(result.stdout)
     assert summary["manifest"]["task"] == "hopper-m-r"
-    assert summary["manifest"]["schema"] == "hipode-synthetic 1.0"
+    assert summary["manifest"]["schema"] == "hipode-synthetic 1.1"
     assert summary["manifest"]["rows"] == len(artifact)
     rewards = summary["statistics"]["rewards"]
     assert rewards["shape"] == [len(artifact)] and rewards["dtype"] == "float32"

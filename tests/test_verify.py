@@ -14,7 +14,7 @@ from test_simulator import real_rollout
 from typer.testing import CliRunner
 
 from hipode_pipeline import console
-from hipode_pipeline.artifact import MANIFEST_ATTR, read_artifact
+from hipode_pipeline.artifact import MANIFEST_ATTR, read_artifact, seal_manifest
 from hipode_pipeline.augment import run_augment
 from hipode_pipeline.commands.verify import register
 from hipode_pipeline.data.load import load_source
@@ -181,7 +181,8 @@ def test_foreign_env_id_in_artifact_is_refused_without_import(tiny_artifact, tmp
     with h5py.File(tampered, "r+") as f:
         manifest = json.loads(f.attrs[MANIFEST_ATTR])
         manifest["env_id"] = "hipode_never_imported_probe:Env"
-        f.attrs[MANIFEST_ATTR] = json.dumps(manifest)
+        # re-sealed: a forger who recomputes the digest still meets the env-id check
+        f.attrs[MANIFEST_ATTR] = json.dumps(seal_manifest(manifest))
     with pytest.raises(DataFormatError) as caught:
         verify_artifact(tampered, sample=8, root=root, baseline=False, show_progress=False)
     assert caught.value.path == str(tampered) and caught.value.field == "env_id"

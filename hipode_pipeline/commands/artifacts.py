@@ -6,9 +6,16 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich.text import Text
 
 from hipode_pipeline import console
-from hipode_pipeline.commands.common import ForceFlag, JsonFlag, RootOption, user_errors
+from hipode_pipeline.commands.common import (
+    ForceFlag,
+    JsonFlag,
+    RootOption,
+    output_file,
+    user_errors,
+)
 
 FileArgument = Annotated[Path, typer.Argument(help="An artifact .hdf5 file.")]
 
@@ -27,15 +34,20 @@ def validate_command(file: FileArgument, json_output: JsonFlag = False) -> None:
         console.out.print(console.table(title, ["severity", "field", "expected", "found"], rows))
     if not json_output:
         errors = len(report.errors)
-        verdict = "[green]valid[/]" if report.valid else f"[red]invalid[/] ({errors} error(s))"
-        console.err.print(f"{file}: {verdict}", highlight=False)
+        verdict = ("valid", "green") if report.valid else ("invalid", "red")
+        count = "" if report.valid else f" ({errors} error(s))"
+        line = Text.assemble(console.plain(f"{file}: "), verdict, count)
+        console.err.print(line, highlight=False)
     if not report.valid:
         raise typer.Exit(code=1)
 
 
 @user_errors
 def inspect_command(file: FileArgument, json_output: JsonFlag = False) -> None:
-    """Verify FILE, then show its manifest highlights and per-dataset statistics."""
+    """Verify FILE, then show its manifest highlights and per-dataset statistics.
+
+    The table cuts long values; --json keeps the manifest's values whole (it is one file's
+    record, asked for on purpose)."""
     from hipode_pipeline.artifact import inspect_artifact
 
     summary = inspect_artifact(file)
@@ -57,7 +69,9 @@ def inspect_command(file: FileArgument, json_output: JsonFlag = False) -> None:
 @user_errors
 def export_command(
     artifact: FileArgument,
-    out: Annotated[Path, typer.Option("--out", help="Where to write the copy.")],
+    out: Annotated[
+        Path, typer.Option("--out", help="Where to write the copy.", callback=output_file)
+    ],
     d4rl: Annotated[
         bool,
         typer.Option("--d4rl", help="Write source ⊕ synthetic as one D4RL-format HDF5 file."),
@@ -99,11 +113,9 @@ def import_command(
 
     summary = import_artifact(file, root=root, force=force)
     for warning in summary["warnings"]:
-        console.err.print(
-            f"warning: {warning['field']}: expected {warning['expected']}, found "
-            f"{warning['found']}",
-            highlight=False,
-        )
+        found = console.shorten(warning["found"])
+        line = f"warning: {warning['field']}: expected {warning['expected']}, found {found}"
+        console.err.print(console.plain(line), highlight=False, soft_wrap=True)
     _print_summary("Imported", summary, json_output)
 
 

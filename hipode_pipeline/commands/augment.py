@@ -20,6 +20,12 @@ from hipode_pipeline.commands.common import (
 )
 
 
+class Learner(StrEnum):
+    td3bc = "td3bc"
+    cql = "cql"
+    iql = "iql"
+
+
 class Profile(StrEnum):
     full = "full"
     quick = "quick"
@@ -44,8 +50,15 @@ class Candidates(StrEnum):
 @user_errors
 def augment_command(
     task: Annotated[
-        str, typer.Argument(help="Task, e.g. hopper-m-r (its Table 6 values are the defaults).")
+        str, typer.Argument(help="Task, e.g. hopper-m-r (the learner's table row gives defaults).")
     ],
+    learner: Annotated[
+        Learner,
+        typer.Option(
+            help="Whose table row gives the defaults: td3bc (Table 6), cql (Table 5), "
+            "iql (Table 7). The artifact serves any learner whose row agrees."
+        ),
+    ] = Learner.td3bc,
     source: Annotated[
         str | None,
         typer.Option(
@@ -53,26 +66,26 @@ def augment_command(
         ),
     ] = None,
     eta: Annotated[
-        float | None, typer.Option(min=0.0, help="Synthetic rate: keep round(eta*N) [Table 6].")
+        float | None, typer.Option(min=0.0, help="Synthetic rate: keep round(eta*N) (table row).")
     ] = None,
     lam: Annotated[
         float | None,
         typer.Option(
             min=0.0,
             max=1.0,
-            help="Selecting rate: fraction kept by dynamics consistency [Table 6].",
+            help="Selecting rate: fraction kept by dynamics consistency (table row).",
         ),
     ] = None,
     n: Annotated[
         int | None,
-        typer.Option("--n", min=1, help="Candidate next states per source state [Table 6]."),
+        typer.Option("--n", min=1, help="Candidate next states per source state (table row)."),
     ] = None,
     alpha: Annotated[
-        float | None, typer.Option(help="Negative-sampling penalty weight [Table 6].")
+        float | None, typer.Option(help="Negative-sampling penalty weight (table row).")
     ] = None,
     sigma: Annotated[
         float | None,
-        typer.Option(min=0.0, help="Negative-sampling scope, z-scored units [Table 6]."),
+        typer.Option(min=0.0, help="Negative-sampling scope, z-scored units (table row)."),
     ] = None,
     penalty: Annotated[Penalty | None, typer.Option(help="Negative-sampling penalty form.")] = None,
     selection: Annotated[
@@ -97,7 +110,8 @@ def augment_command(
     out: Annotated[
         Path | None,
         typer.Option(
-            help="Artifact path (default: <root>/artifacts/<task>-td3bc-seed<seed>.hdf5)."
+            help="Artifact path (default: <root>/artifacts/<task>-eta<η>-lam<λ>-n<n>-alpha<α>-"
+            "sigma<σ>[-variant]-seed<seed>.hdf5, named by its settings)."
         ),
     ] = None,
     root: RootOption = None,
@@ -108,6 +122,7 @@ def augment_command(
     """Train HIPODE's five generators on the source and write the synthetic dataset file."""
     summary = run_augment(
         task,
+        learner=learner.value,
         source=source,
         eta=eta,
         lam=lam,

@@ -49,7 +49,9 @@ def collect_command(
         return
     if result.reused:
         console.err.print(
-            f"{result.dataset_ids[0]} already exists at {result.path}; --force rebuilds it"
+            console.plain(
+                f"{result.dataset_ids[0]} already exists at {result.path}; --force rebuilds it"
+            )
         )
     policies = sorted(result.policy_returns)
     rows = [

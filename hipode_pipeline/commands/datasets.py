@@ -19,6 +19,8 @@ datasets_app = typer.Typer(
 LIST_COLUMNS = ("id", "kind", "task", "env", "N", "episodes", "refs", "schema", "size", "note")
 # Widest id kept unfolded in the table; longer ones wrap
 ID_WIDTH = 48
+# a task, env, schema or note read from a file: a real one is far shorter
+LIST_VALUE_LIMIT = 80
 
 
 @datasets_app.command("list")
@@ -27,34 +29,38 @@ def list_command(root: RootOption = None, json_output: JsonFlag = False) -> None
     """List the Minari datasets, artifacts and D4RL files under the dataset root."""
     entries = list_local_datasets(root)
     if json_output:
-        console.print_json([entry.to_dict() for entry in entries])
+        # values read from files are capped here too: a listing never carries megabytes
+        console.print_json(console.cap_strings([entry.to_dict() for entry in entries]))
         return
     where = (root or datasets_root()).resolve()
     if not entries:
         console.err.print(
-            f"no datasets under {where}; "
-            "`hipode collect TASK` builds one, or copy a Minari dataset there"
+            console.plain(
+                f"no datasets under {where}; "
+                "`hipode collect TASK` builds one, or copy a Minari dataset there"
+            )
         )
     columns = [c for c in LIST_COLUMNS if c != "note" or any(e.note for e in entries)]
     rows = [
         [
             e.id,
             e.kind,
-            e.task,
-            e.env_id,
+            *(_short(v) for v in (e.task, e.env_id)),
             e.transitions,
             e.episodes,
             e.ref_scores_from or "none",
-            e.schema_version,
+            _short(e.schema_version),
             _size_text(e.size_bytes),
             # the table shows a note's gist; --json has the detail
-            e.note.split(" (")[0] if e.note else None,
+            _short(e.note.split(" (")[0]) if e.note else None,
         ][: len(columns)]
         for e in entries
     ]
     table = console.table(f"Datasets in {where}", columns, rows)
     # ids are what a user copies into the next command: keep them on one line
-    table.columns[0].min_width = min(ID_WIDTH, max((len(e.id) for e in entries), default=2))
+    table.columns[0].min_width = min(
+        ID_WIDTH, max((len(console.shorten(e.id)) for e in entries), default=2)
+    )
     console.out.print(table)
 
 
@@ -67,15 +73,21 @@ def show_command(
     root: RootOption = None,
     json_output: JsonFlag = False,
 ) -> None:
-    """Load one source, validate it, and print its size, dims, env, refs, episodes and sha256."""
+    """Load one source, validate it, and print its size, dims, env, refs, episodes and sha256.
+
+    The table cuts long values; --json keeps them whole (one source, asked for on purpose)."""
     summary = describe_source(spec, root)
     if json_output:
         console.print_json(summary)
         return
     for note in summary["notes"]:
-        console.err.print(f"note: {note}", highlight=False)
+        console.err.print(console.plain(f"note: {note}"), highlight=False, soft_wrap=True)
     rows = [[key, value] for key, value in summary.items() if key != "notes"]
     console.out.print(console.table(f"Source {summary['id']}", ["field", "value"], rows))
+
+
+def _short(value: str | None) -> str | None:
+    return None if value is None else console.shorten(value, LIST_VALUE_LIMIT)
 
 
 def _size_text(size: int) -> str:

@@ -8,7 +8,13 @@ from typing import Annotated
 import typer
 
 from hipode_pipeline import console
-from hipode_pipeline.commands.common import ForceFlag, JsonFlag, RootOption, user_errors
+from hipode_pipeline.commands.common import (
+    ForceFlag,
+    JsonFlag,
+    RootOption,
+    output_file,
+    user_errors,
+)
 
 
 @user_errors
@@ -20,15 +26,19 @@ def merge_command(
         Path,
         typer.Argument(help="Synthetic artifact written by `hipode augment` from that source."),
     ],
-    out: Annotated[Path, typer.Option("--out", help="The merged .hdf5 file to write.")],
+    out: Annotated[
+        Path, typer.Option("--out", help="The merged .hdf5 file to write.", callback=output_file)
+    ],
     root: RootOption = None,
     force: ForceFlag = False,
     json_output: JsonFlag = False,
 ) -> None:
     """Write SOURCE and ARTIFACT as one flat file with an is_synthetic mask and provenance."""
+    from hipode_pipeline.files import output_lock
     from hipode_pipeline.merge import merge_files
 
-    summary = merge_files(source, artifact, out, root=root, force=force)
+    with output_lock(out, command="hipode merge"):
+        summary = merge_files(source, artifact, out, root=root, force=force)
     if json_output:
         console.print_json(summary)
         return

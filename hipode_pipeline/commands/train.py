@@ -16,6 +16,7 @@ from hipode_pipeline.commands.common import (
     JsonFlag,
     RootOption,
     SeedOption,
+    output_folder,
     user_errors,
 )
 
@@ -45,7 +46,9 @@ def train_command(
     eta: Annotated[
         float | None,
         typer.Option(
-            "--eta", help="Synthetic fraction per batch (default: the task's table value)."
+            "--eta",
+            help="Synthetic fraction per batch (default: the artifact's own synthetic rate; "
+            "above it each synthetic row recurs more often: warned up to 2x, refused beyond).",
         ),
     ] = None,
     mixing: Annotated[
@@ -60,9 +63,17 @@ def train_command(
     artifact: Annotated[
         Path | None,
         typer.Option(
-            "--artifact", help="Synthetic artifact (default: what `hipode augment TASK` wrote)."
+            "--artifact",
+            help="Synthetic artifact to use as given (default: the one whose manifest matches "
+            "the learner's table row, built by `hipode augment TASK --learner L`).",
         ),
     ] = None,
+    artifact_seed: Annotated[
+        int,
+        typer.Option(
+            "--artifact-seed", help="Stage-one seed of the artifact (independent of --seed)."
+        ),
+    ] = 0,
     source: Annotated[
         str | None,
         typer.Option(
@@ -72,16 +83,24 @@ def train_command(
     out: Annotated[
         Path,
         typer.Option(
-            "--out", help="Runs folder; the run goes to OUT/<task>/<learner>-<data>-seed<seed>/."
+            "--out",
+            callback=output_folder,
+            help="Runs folder; the run goes to "
+            "OUT/<task>/<learner>-<data>-eta<η>-<identity>-seed<seed>/ (or OUT/<task>/<name>/).",
         ),
     ] = Path("runs"),
+    name: Annotated[
+        str | None,
+        typer.Option("--name", help="Run folder name under OUT/<task>/ instead of the identity."),
+    ] = None,
     device: DeviceOption = None,
     root: RootOption = None,
     force: ForceFlag = False,
     json_output: JsonFlag = False,
 ) -> None:
     """Train an offline learner on the task's data, evaluate it, print its scores (resumes)."""
-    from hipode_pipeline.train import SCORE_COLUMNS, SCORE_TITLE, run_training, score_table_rows
+    from hipode_pipeline.run_folder import SCORE_COLUMNS, SCORE_TITLE, score_table_rows
+    from hipode_pipeline.train import run_training
 
     result = run_training(
         task,
@@ -94,11 +113,13 @@ def train_command(
         out,
         source=source,
         artifact=artifact,
+        artifact_seed=artifact_seed,
         eta=eta,
         mixing=mixing,
         batch_size=batch_size,
         device=device,
         root=root,
+        name=name,
         force=force,
         show_progress=not json_output,
     )

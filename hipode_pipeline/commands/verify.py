@@ -8,7 +8,14 @@ from typing import Annotated
 import typer
 
 from hipode_pipeline import console
-from hipode_pipeline.commands.common import ForceFlag, JsonFlag, RootOption, SeedOption, user_errors
+from hipode_pipeline.commands.common import (
+    ForceFlag,
+    JsonFlag,
+    RootOption,
+    SeedOption,
+    output_folder,
+    user_errors,
+)
 from hipode_pipeline.verify import DEFAULT_TOLERANCE, TABLE_COLUMNS, verify_artifact
 
 ArtifactArgument = Annotated[Path, typer.Argument(help="The synthetic dataset file (.hdf5).")]
@@ -31,6 +38,7 @@ OutDirOption = Annotated[
     typer.Option(
         "--out-dir",
         help="Folder for the .verify.json and .verify.png (default: the artifact's folder).",
+        callback=output_folder,
     ),
 ]
 
@@ -71,4 +79,4 @@ def verify(
     name = Path(report.artifact).name
     title = f"{report.env_id} simulator vs {name} (tolerance {report.tolerance})"
     console.out.print(console.table(title, TABLE_COLUMNS, report.rows()))
-    console.err.print(f"wrote {report.json_path} and {report.png_path}")
+    console.err.print(console.plain(f"wrote {report.json_path} and {report.png_path}"))

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -17,15 +17,28 @@ import h5py
 from hipode_pipeline.data.d4rl_source import MANIFEST_ATTR, float_or_none
 from hipode_pipeline.data.load import HDF5_SUFFIXES, task_for_env, task_from_file_name
 from hipode_pipeline.data.minari_source import METADATA_FILE, env_id_of, ref_scores_of
+from hipode_pipeline.envs import canonical_env_id
 from hipode_pipeline.errors import DataFormatError
 from hipode_pipeline.paths import datasets_root
 from hipode_pipeline.tasks import Task
+from hipode_pipeline.validation import path_problem
 
 ARTIFACTS_DIR = "artifacts"
 # Folders of the root that hold no source datasets (generator caches, run outputs)
 SKIPPED_DIRS = {"cache", "runs"}
 # Minari ids have at most namespace/env/name; deeper folders are not datasets
 MAX_ID_DEPTH = 3
+# what reading a foreign HDF5 file's header can raise (h5py maps damage to several types);
+# one such file gets a note and never stops the listing
+UNREADABLE = (
+    OSError,
+    DataFormatError,
+    ValueError,
+    TypeError,
+    KeyError,
+    RuntimeError,
+    RecursionError,
+)
 
 
 @dataclass(frozen=True)
@@ -71,7 +84,11 @@ def _minari_dataset_dirs(root: Path) -> list[Path]:
     for _ in range(MAX_ID_DEPTH):
         children = []
         for parent in frontier:
-            for child in sorted(parent.iterdir()):
+            try:
+                listing = sorted(parent.iterdir())
+            except OSError:
+                continue  # an unreadable folder holds nothing we can list
+            for child in listing:
                 if not child.is_dir() or _skipped(root, child):
                     continue
                 if (child / "data" / METADATA_FILE).is_file():
@@ -112,7 +129,7 @@ def _describe_minari(root: Path, folder: Path) -> LocalDataset:
         metadata = json.loads((folder / "data" / METADATA_FILE).read_text())
         if not isinstance(metadata, dict):
             raise ValueError("not a JSON object")
-    except (OSError, ValueError) as error:
+    except (OSError, ValueError, RecursionError) as error:
         return LocalDataset(
             dataset_id,
             "minari",
@@ -125,7 +142,7 @@ def _describe_minari(root: Path, folder: Path) -> LocalDataset:
             dataset_id,
             f"unreadable metadata ({error})",
         )
-    env_id = env_id_of(metadata)
+    env_id = _runnable(env_id_of(metadata))
     has_refs = ref_scores_of(metadata) != (None, None)
     return LocalDataset(
         id=dataset_id,
@@ -142,6 +159,11 @@ def _describe_minari(root: Path, folder: Path) -> LocalDataset:
 
 def _describe_file(root: Path, file: Path, kind: str) -> LocalDataset:
     relative = file.relative_to(root).as_posix()
+    problem = path_problem(file)
+    if problem is not None:
+        # listed but never opened: a FIFO would block the listing, a link loop would fail it
+        entry = LocalDataset(relative, kind, None, None, None, False, None, 0, relative)
+        return replace(entry, note=f"not read: {problem}")
     size = file.stat().st_size
     if kind == "artifact":
         described = _describe_artifact(file, relative, size)
@@ -150,7 +172,7 @@ def _describe_file(root: Path, file: Path, kind: str) -> LocalDataset:
     try:
         env_id, rows, has_refs = _file_header(file)
         note = None
-    except (OSError, DataFormatError, ValueError) as error:
+    except UNREADABLE as error:
         env_id, rows, has_refs, note = None, None, False, f"unreadable ({error})"
     return _file_entry(file, relative, kind, size, env_id, rows, has_refs, note=note)
 
@@ -165,7 +187,7 @@ def _describe_artifact(file: Path, relative: str, size: int) -> LocalDataset | N
         with h5py.File(file, "r") as f:
             observations = f.get("observations")
             rows = int(observations.shape[0]) if isinstance(observations, h5py.Dataset) else None
-    except (OSError, DataFormatError):
+    except UNREADABLE:
         return None
     task_name = manifest.get("task") if isinstance(manifest.get("task"), str) else None
     env_id = manifest.get("env_id") if isinstance(manifest.get("env_id"), str) else None
@@ -197,6 +219,7 @@ def _file_entry(
     **extra: Any,
 ) -> LocalDataset:
     """A flat file's entry; env id and refs fall back to the task its env or name points to."""
+    env_id = _runnable(env_id)
     task = task_for_env(env_id) if env_id else task_from_file_name(file)
     return LocalDataset(
         id=relative,
@@ -210,6 +233,11 @@ def _file_entry(
         path=relative,
         **extra,
     )
+
+
+def _runnable(env_id: str | None) -> str | None:
+    """The env a loader runs for `env_id` (Hopper-v2 -> Hopper-v5), so the list matches `show`."""
+    return canonical_env_id(env_id)[0] if env_id else None
 
 
 def _refs_from(has_refs: bool, task: Task | None) -> str | None:

@@ -19,7 +19,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
 from hipode_pipeline.console import progress, rate_text
 from hipode_pipeline.data.minari_write import dataset_dir, split_episodes, write_minari_dataset
@@ -29,7 +28,6 @@ from hipode_pipeline.data.ppo import (
     PPOConfig,
     PPOTrainer,
     RolloutBlock,
-    evaluate_policy,
     load_checkpoint,
     load_policy,
     make_env,
@@ -42,9 +40,11 @@ from hipode_pipeline.errors import (
     DataFormatError,
     NotCollectableError,
 )
+from hipode_pipeline.evaluate import evaluate_policy
 from hipode_pipeline.files import save_npz_atomic, save_torch_atomic, write_json_atomic
 from hipode_pipeline.paths import stages_dir, use_datasets_root
 from hipode_pipeline.tasks import Task
+from hipode_pipeline.threads import torch_threads
 from hipode_pipeline.versions import package_versions
 
 RECIPE_FILE = "collect.toml"
@@ -235,7 +235,6 @@ def train_behaviour_policies(
         _check_same_recipe(state, recipe, checkpoint)
     if "medium" in milestones and (not need_expert or "expert" in milestones):
         return milestones
-    torch.set_num_threads(1)  # PPO's updates are tiny: a second thread only adds spinning
     trainer = PPOTrainer(task.env_id, recipe.ppo, seed, recipe.recent_episodes)
     if checkpoint.exists():
         trainer.load_state_dict(state, checkpoint)
@@ -338,6 +337,20 @@ def train_behaviour_policies(
     return milestones
 
 
+def policy_returns(
+    task: Task, policy: GaussianPolicy, episodes: int, seed: int, deterministic: bool
+) -> np.ndarray:
+    """Returns of a behaviour policy through the one evaluation path every learner uses."""
+    rng = np.random.default_rng(seed)
+    result = evaluate_policy(
+        lambda observations: policy.sample(observations, rng, deterministic),
+        task.env_id,
+        episodes=episodes,
+        seed=seed,
+    )
+    return np.asarray(result.returns)
+
+
 def policy_check(
     task: Task,
     recipe: CollectRecipe,
@@ -352,12 +365,8 @@ def policy_check(
     and the first crossing of a threshold is a lucky draw (measured: 53 vs 34 normalized).
     """
     check_seed = _stream_seed(seed, stream, 20_000 + iteration)
-    returns = evaluate_policy(
-        task.env_id,
-        policy,
-        recipe.eval_episodes,
-        check_seed,
-        deterministic=not recipe.stochastic_rollouts,
+    returns = policy_returns(
+        task, policy, recipe.eval_episodes, check_seed, not recipe.stochastic_rollouts
     )
     mean = float(returns.mean())
     return {"mean": mean, "normalized": task.normalized_score(mean), "seed": check_seed}
@@ -496,12 +505,8 @@ def measured_return(
         return json.loads(cache.read_text())
     policy, info = load_policy(work / f"policy-{name}.pt")
     eval_seed = _stream_seed(seed, name, 10_000)
-    returns = evaluate_policy(
-        task.env_id,
-        policy,
-        recipe.eval_episodes,
-        eval_seed,
-        deterministic=not recipe.stochastic_rollouts,
+    returns = policy_returns(
+        task, policy, recipe.eval_episodes, eval_seed, not recipe.stochastic_rollouts
     )
     result = {
         "mean": float(returns.mean()),
@@ -581,7 +586,8 @@ def collect(
     recipe = load_recipe(task.env, profile)
     work = work_dir(root, task.env, seed)
     work.mkdir(parents=True, exist_ok=True)
-    with work_lock(work):
+    # PPO's networks are tiny: a second thread only adds spinning (restored for later stages)
+    with work_lock(work), torch_threads(1):
         return _collect_in(task, recipe, root, work, seed, profile, force, show_progress, started)
 
 

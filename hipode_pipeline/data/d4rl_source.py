@@ -1,13 +1,17 @@
 """D4RL-format HDF5 files: flat `observations, actions, rewards, terminals[, timeouts,
 next_observations]` arrays, as D4RL ships them and as our synthetic artifacts are written.
 
+A file whose manifest says it is a synthetic artifact is read through the artifact schema's rules
+(schema, manifest digest, shapes, checksum) before any row is used; a damaged one is refused.
+Only datasets stored in the file itself are read: a link, virtual dataset or external storage
+naming another file is refused, never followed.
+
 Also home of the HDF5 header checks the Minari loader shares: a field's rank, dtype and size are
 checked from the file's metadata before a byte of it is read, so an absurd shape fails fast.
 """
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 from typing import Any
@@ -15,8 +19,21 @@ from typing import Any
 import h5py
 import numpy as np
 
-from hipode_pipeline.data.transitions import SourceInfo, Transitions, validate_transitions
+from hipode_pipeline.data.transitions import (
+    FIELDS,
+    SourceInfo,
+    Transitions,
+    validate_transitions,
+)
 from hipode_pipeline.errors import DataFormatError
+from hipode_pipeline.validation import (
+    FLOAT32_MAX,
+    Findings,
+    check_file,
+    claims_artifact,
+    parse_manifest_text,
+    path_problem,
+)
 
 FORMAT = "d4rl-hdf5"
 REQUIRED_FIELDS = ("observations", "actions", "rewards", "terminals")
@@ -110,8 +127,37 @@ def read_field(dataset: h5py.Dataset, origin: str | Path, field: str) -> np.ndar
         ) from None
 
 
+def stored_here(f: h5py.Group, name: str, origin: str | Path) -> Any:
+    """`f[name]` when it is a hard link to a dataset stored in this file (or a group); a soft or
+    external link, a virtual dataset or external raw storage names another path: refused."""
+    link = f.get(name, getlink=True)
+    if not isinstance(link, h5py.HardLink):
+        target = getattr(link, "filename", None) or getattr(link, "path", "")
+        raise DataFormatError(
+            origin,
+            name,
+            "a dataset stored in this file",
+            f"a {type(link).__name__} to {target!r} (links out of the file are not followed)",
+        )
+    node = f[name]
+    if isinstance(node, h5py.Dataset) and (node.is_virtual or node.external):
+        raise DataFormatError(
+            origin,
+            name,
+            "a dataset stored in this file",
+            "a virtual or externally stored dataset (its bytes live in other files)",
+        )
+    return node
+
+
 def open_hdf5(path: str | Path, field: str = "file") -> h5py.File:
-    """Open an HDF5 file read-only, with a clear error when it is not one."""
+    """Open an HDF5 file read-only, with a clear error when it is not one (or not a regular
+    file: a FIFO is never opened, so it cannot block)."""
+    problem = path_problem(path)
+    if problem is None and os.stat(path).st_size == 0:
+        problem = "an empty file (0 bytes)"
+    if problem is not None:
+        raise DataFormatError(path, field, "a readable HDF5 file (a regular file)", problem)
     try:
         return h5py.File(path, "r")
     except OSError as error:
@@ -167,37 +213,14 @@ def load_d4rl_hdf5(
         raise ValueError(f"max_episode_steps must be >= 1, got {max_episode_steps}")
     notes: list[str] = []
     with open_hdf5(path) as f:
-        for name in REQUIRED_FIELDS:
-            if name not in f:
-                present = ", ".join(sorted(f.keys())) or "no fields"
-                raise DataFormatError(
-                    origin, name, "a dataset field", f"nothing (missing; file has {present})"
-                )
-        obs_shape = check_field_header(f["observations"], origin, "observations", rows=None)
-        n, obs_dim = obs_shape
-        act_dim = check_field_header(f["actions"], origin, "actions", rows=n)[1]
-        for name in ("rewards", "terminals"):
-            check_field_header(f[name], origin, name, rows=n, flag=True)
-        has_timeouts = "timeouts" in f
-        has_next = "next_observations" in f
-        if has_timeouts:
-            check_field_header(f["timeouts"], origin, "timeouts", rows=n, flag=True)
-        if has_next:
-            check_field_header(
-                f["next_observations"], origin, "next_observations", rows=n, feature_dim=obs_dim
-            )
-        check_memory(origin, "observations", n, obs_dim, act_dim)
-        raw = {name: read_field(f[name], origin, name) for name in REQUIRED_FIELDS}
-        raw["timeouts"] = (
-            read_field(f["timeouts"], origin, "timeouts") if has_timeouts else np.zeros(n, bool)
-        )
-        # a placeholder when absent, so one validate call checks every field read
-        raw["next_observations"] = (
-            read_field(f["next_observations"], origin, "next_observations")
-            if has_next
-            else raw["observations"]
-        )
-        file_metadata = read_file_metadata(f)
+        is_artifact = claims_artifact(f.attrs.get(MANIFEST_ATTR))
+    if is_artifact:
+        raw, file_metadata = _read_artifact_rows(Path(path))
+        n, has_timeouts, has_next = len(raw["observations"]), True, True
+    else:
+        raw, file_metadata, has_timeouts, has_next = _read_d4rl_rows(path, origin)
+        n = raw["observations"].shape[0]
+    _check_float32_range(raw, origin)
     with np.errstate(over="ignore"):
         full = validate_transitions(raw, origin)
     terminals, timeouts = full.terminals, full.timeouts
@@ -270,6 +293,82 @@ def load_d4rl_hdf5(
     return transitions, info
 
 
+def _read_d4rl_rows(
+    path: str | Path, origin: str
+) -> tuple[dict[str, np.ndarray], dict[str, Any], bool, bool]:
+    """The raw fields of a plain D4RL file, headers checked before any bytes are read."""
+    with open_hdf5(path) as f:
+        for name in REQUIRED_FIELDS:
+            if name not in f:
+                present = ", ".join(sorted(f.keys())) or "no fields"
+                raise DataFormatError(
+                    origin, name, "a dataset field", f"nothing (missing; file has {present})"
+                )
+        has_timeouts = "timeouts" in f
+        has_next = "next_observations" in f
+        present = [*REQUIRED_FIELDS, *(["timeouts"] if has_timeouts else [])]
+        present += ["next_observations"] if has_next else []
+        nodes = {name: stored_here(f, name, origin) for name in present}
+        obs_shape = check_field_header(nodes["observations"], origin, "observations", rows=None)
+        n, obs_dim = obs_shape
+        act_dim = check_field_header(nodes["actions"], origin, "actions", rows=n)[1]
+        for name in ("rewards", "terminals"):
+            check_field_header(nodes[name], origin, name, rows=n, flag=True)
+        if has_timeouts:
+            check_field_header(nodes["timeouts"], origin, "timeouts", rows=n, flag=True)
+        if has_next:
+            check_field_header(
+                nodes["next_observations"],
+                origin,
+                "next_observations",
+                rows=n,
+                feature_dim=obs_dim,
+            )
+        check_memory(origin, "observations", n, obs_dim, act_dim)
+        raw = {name: read_field(nodes[name], origin, name) for name in REQUIRED_FIELDS}
+        raw["timeouts"] = (
+            read_field(nodes["timeouts"], origin, "timeouts") if has_timeouts else np.zeros(n, bool)
+        )
+        # a placeholder when absent, so one validate call checks every field read
+        raw["next_observations"] = (
+            read_field(nodes["next_observations"], origin, "next_observations")
+            if has_next
+            else raw["observations"]
+        )
+        file_metadata = read_file_metadata(f)
+    return raw, file_metadata, has_timeouts, has_next
+
+
+def _read_artifact_rows(path: Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """A synthetic artifact's six fields, after every rule `read_artifact` applies (schema,
+    manifest digest, shapes, finiteness, checksum): the first broken one is raised."""
+    manifest, arrays = check_file(path, Findings(path, strict=True), read_arrays=True)
+    with open_hdf5(path) as f:
+        file_metadata = read_file_metadata(f)
+    # the verified manifest, not a lenient re-parse of the attribute
+    file_metadata[MANIFEST_ATTR] = manifest
+    return {name: arrays[name] for name in FIELDS}, file_metadata
+
+
+def _check_float32_range(raw: dict[str, np.ndarray], origin: str) -> None:
+    """A wider float beyond float32's range would become inf when cast: say so, not "inf"."""
+    for name, array in raw.items():
+        if array.dtype.kind != "f" or array.dtype.itemsize <= 4:
+            continue
+        with np.errstate(invalid="ignore"):
+            beyond = np.isfinite(array) & (np.abs(array) > FLOAT32_MAX)
+        if beyond.any():
+            first = np.argwhere(beyond)[0]
+            value = float(array[tuple(first)])
+            raise DataFormatError(
+                origin,
+                name,
+                f"values within float32's range (|x| <= {FLOAT32_MAX:.3g}; rows are float32)",
+                f"{int(beyond.sum())} value(s) that overflow float32, first {value:.3g} at row "
+                f"{int(first[0])} ({array.dtype})",
+            )
+
+
 def _shift_next_observations(
     full: Transitions, terminals: np.ndarray, timeouts: np.ndarray, origin: str
 ) -> tuple[Transitions, int]:
@@ -311,14 +410,19 @@ def read_file_metadata(f: h5py.File) -> dict[str, Any]:
         found[key] = _jsonable(value)
     if isinstance(found.get(MANIFEST_ATTR), str):
         try:
-            found[MANIFEST_ATTR] = json.loads(found[MANIFEST_ATTR])
-        except json.JSONDecodeError:
+            found[MANIFEST_ATTR] = parse_manifest_text(found[MANIFEST_ATTR])
+        except ValueError:
+            # not an artifact's (those are checked by the artifact rules): kept as text
             pass
-    group = f.get("metadata")
+    # a link named metadata could point into another file: only a group stored here is read
+    link = f.get("metadata", getlink=True)
+    group = f.get("metadata") if isinstance(link, h5py.HardLink) else None
     if isinstance(group, h5py.Group):
 
         def visit(name: str, item: Any) -> None:
-            if isinstance(item, h5py.Dataset) and item.size <= 16 and item.dtype.kind in "fiubSOU":
+            small = isinstance(item, h5py.Dataset) and item.size <= 16
+            # bytes kept in other files are not read, however small
+            if small and not (item.is_virtual or item.external) and item.dtype.kind in "fiubSOU":
                 found[f"metadata/{name}"] = _jsonable(item[()])
 
         group.visititems(visit)
@@ -332,13 +436,19 @@ def is_synthetic_artifact(file_metadata: dict[str, Any]) -> bool:
     return isinstance(schema, dict) and schema.get("name") == SYNTHETIC_SCHEMA
 
 
-def _env_id_from(file_metadata: dict[str, Any]) -> str | None:
+def env_id_entry(file_metadata: dict[str, Any]) -> tuple[str, str] | None:
+    """(field, env id) of the first place in the file's metadata that names the env, or None."""
     manifest = file_metadata.get(MANIFEST_ATTR)
-    candidates = [file_metadata.get(key) for key in ENV_ID_KEYS]
-    candidates += [file_metadata.get(f"metadata/{key}") for key in ENV_ID_KEYS]
+    candidates = [(key, file_metadata.get(key)) for key in ENV_ID_KEYS]
+    candidates += [(f"metadata/{key}", file_metadata.get(f"metadata/{key}")) for key in ENV_ID_KEYS]
     if isinstance(manifest, dict):
-        candidates.insert(0, manifest.get("env_id"))
-    return next((c for c in candidates if isinstance(c, str) and c), None)
+        candidates.insert(0, (f"{MANIFEST_ATTR}.env_id", manifest.get("env_id")))
+    return next(((k, c) for k, c in candidates if isinstance(c, str) and c), None)
+
+
+def _env_id_from(file_metadata: dict[str, Any]) -> str | None:
+    entry = env_id_entry(file_metadata)
+    return entry[1] if entry else None
 
 
 def _ref_from(file_metadata: dict[str, Any], key: str) -> float | None:

@@ -70,6 +70,12 @@ def read_metadata(data_dir: Path) -> dict[str, Any]:
 
 def env_id_of(metadata: dict[str, Any]) -> str | None:
     """The gymnasium id in `env_spec` (else `eval_env_spec`), read as a plain string."""
+    entry = env_id_entry(metadata)
+    return entry[1] if entry else None
+
+
+def env_id_entry(metadata: dict[str, Any]) -> tuple[str, str] | None:
+    """(field, env id): where `env_id_of` finds the id, e.g. ("env_spec.id", "Hopper-v5")."""
     for key in ("env_spec", "eval_env_spec"):
         spec = metadata.get(key)
         if isinstance(spec, str):
@@ -78,7 +84,7 @@ def env_id_of(metadata: dict[str, Any]) -> str | None:
             except json.JSONDecodeError:
                 continue
         if isinstance(spec, dict) and isinstance(spec.get("id"), str):
-            return spec["id"]
+            return f"{key}.id", spec["id"]
     return None
 
 

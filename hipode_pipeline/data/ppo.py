@@ -533,23 +533,3 @@ def run_policy(
         if on_step is not None:
             on_step(t + 1, finished)
     return block
-
-
-def evaluate_policy(
-    env_id: str, policy: GaussianPolicy, episodes: int, seed: int, deterministic: bool = False
-) -> np.ndarray:
-    """Returns of `episodes` complete episodes, run side by side, one per env."""
-    rng = np.random.default_rng(seed)
-    made = [make_env(env_id) for _ in range(episodes)]
-    envs, time_limit = [e for e, _ in made], made[0][1]
-    obs = np.stack([env.reset(seed=seed * 1000 + i)[0] for i, env in enumerate(envs)])
-    returns, alive = np.zeros(episodes), np.ones(episodes, bool)
-    for _ in range(time_limit):
-        actions = clip_actions(envs[0], policy.sample(obs, rng, deterministic))
-        for i in np.flatnonzero(alive):
-            obs[i], reward, terminated, _, _ = envs[i].step(actions[i])
-            returns[i] += reward
-            alive[i] = not terminated
-        if not alive.any():
-            break
-    return returns

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, fields
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 import torch
@@ -15,6 +15,7 @@ from hipode_pipeline.data.normalizer import StateNormalizer
 from hipode_pipeline.data.transitions import Transitions
 from hipode_pipeline.device import select_device
 from hipode_pipeline.errors import HipodeError
+from hipode_pipeline.replay import Batch
 
 __all__ = [
     "MLP",
@@ -28,16 +29,6 @@ __all__ = [
     "polyak_",
     "select_device",
 ]
-
-
-class Batch(NamedTuple):
-    """One minibatch of raw (un-normalized) transitions on the learner's device."""
-
-    observations: torch.Tensor  # (B, ds)
-    actions: torch.Tensor  # (B, da)
-    rewards: torch.Tensor  # (B,)
-    next_observations: torch.Tensor  # (B, ds)
-    dones: torch.Tensor  # (B,) 1.0 where the MDP ended (terminal, not timeout)
 
 
 @dataclass

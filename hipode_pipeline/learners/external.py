@@ -23,8 +23,10 @@ import torch
 
 from hipode_pipeline import console
 from hipode_pipeline.data.transitions import Transitions
-from hipode_pipeline.errors import HipodeError, OverwriteError
+from hipode_pipeline.errors import HipodeError
 from hipode_pipeline.evaluate import evaluate_policy
+from hipode_pipeline.files import write_json_atomic
+from hipode_pipeline.run_folder import TrainResult, finish_run, open_run_dir
 
 D3RLPY_VERSION = "2.8.1"
 
@@ -94,28 +96,16 @@ def _train_d3rlpy(
     algo_name: str,
     merged,
     *,
-    task: str,
-    data: str,
-    eta: float,
-    steps: int,
-    seed: int,
-    eval_every: int,
-    eval_episodes: int,
-    env_id: str,
-    ref_scores: tuple[float | None, float | None],
+    config: dict[str, Any],
     run_dir: Path,
-    batch_size: int,
+    run_state: str,
     device: torch.device,
-    learner_alpha: float | None = None,
-    force: bool = False,
     show_progress: bool = True,
-):
-    """Train d3rlpy's `algo_name` (e.g. TD3PlusBC) on the merged data, evaluate it like ours and
-    write config.json, metrics.jsonl and scores.json (no resume: d3rlpy keeps its own state)."""
-    from hipode_pipeline.files import write_json_atomic
-    from hipode_pipeline.train import TrainResult, finish_run
-    from hipode_pipeline.versions import package_versions
-
+) -> TrainResult:
+    """Train d3rlpy's `algo_name` (e.g. TD3PlusBC) on the merged data with the run's `config`
+    (built and checked by stage two's driver), evaluate it like ours and write config.json,
+    metrics.jsonl and scores.json. No resume: d3rlpy keeps its own state, so an unfinished
+    folder starts over."""
     d3rlpy = require_d3rlpy()
     config_class = getattr(d3rlpy.algos, f"{algo_name}Config", None)
     if config_class is None:
@@ -123,47 +113,34 @@ def _train_d3rlpy(
             f"learner d3rlpy:{algo_name}: expected a d3rlpy algorithm name "
             "such as TD3PlusBC, IQL or CQL"
         )
-    if (run_dir / "scores.json").exists() and not force:
-        raise OverwriteError(f"{run_dir} already holds a finished run; pass --force to train again")
-    run_dir.mkdir(parents=True, exist_ok=True)
+    steps, seed, eval_every = config["steps"], config["seed"], config["eval_every"]
+    open_run_dir(run_dir, "replace" if run_state == "resume" else run_state)
     d3rlpy.seed(seed)
     real = merged.real
     # state statistics from the real data only, as our learners do (d3rlpy adds its eps itself)
     scaler = d3rlpy.preprocessing.StandardObservationScaler(
         mean=real.observations.mean(0), std=real.observations.std(0)
     )
-    settings: dict[str, Any] = {"batch_size": batch_size, "observation_scaler": scaler}
+    settings: dict[str, Any] = {"batch_size": config["batch_size"], "observation_scaler": scaler}
+    learner_alpha = config["learner_config"].get("alpha")
     if algo_name == "TD3PlusBC" and learner_alpha is not None:
         settings["alpha"] = learner_alpha
     algo = config_class(**settings).create(device="cuda:0" if device.type == "cuda" else "cpu:0")
-    real_buffer, buffer = build_d3rlpy_buffer(real, merged.synthetic, eta)
+    real_buffer, buffer = build_d3rlpy_buffer(real, merged.synthetic, config["eta"])
     algo.build_with_dataset(real_buffer)
-    ref_min, ref_max = ref_scores
-    config = {
-        "task": task,
-        "learner": f"d3rlpy:{algo_name}",
-        "data": data,
-        "eta": eta,
-        "seed": seed,
-        "steps": steps,
-        "batch_size": batch_size,
-        "env_id": env_id,
-        "source_sha256": merged.source["sha256"],
-        "artifact_checksum": (merged.artifact_manifest or {}).get("checksum"),
-        "artifact_path": None if merged.artifact_path is None else str(merged.artifact_path),
-        "versions": {**package_versions(), "d3rlpy": d3rlpy.__version__},
-    }
+    config = {**config, "versions": {**config["versions"], "d3rlpy": d3rlpy.__version__}}
     write_json_atomic(run_dir / "config.json", config)
     evaluations: list[dict[str, Any]] = []
     train_seconds = 0.0
+    learner = config["learner"]
     with (
         console.progress(disable=not show_progress) as prog,
         open(run_dir / "metrics.jsonl", "w") as metrics_file,
     ):
-        bar = prog.add_task(f"train d3rlpy:{algo_name} {task}", total=steps, rate="", info="")
+        bar = prog.add_task(f"train {learner} {config['task']}", total=steps, rate="", info="")
         window, done = time.perf_counter(), 0
         for step in range(1, steps + 1):
-            losses = algo.update(buffer.sample_transition_batch(batch_size))
+            losses = algo.update(buffer.sample_transition_batch(config["batch_size"]))
             done += 1
             if step % eval_every and step != steps:
                 continue
@@ -171,11 +148,11 @@ def _train_d3rlpy(
             train_seconds += elapsed
             result = evaluate_policy(
                 algo.predict,
-                env_id,
-                episodes=eval_episodes,
+                config["env_id"],
+                episodes=config["eval_episodes"],
                 seed=seed,
-                ref_min_score=ref_min,
-                ref_max_score=ref_max,
+                ref_min_score=config["ref_min_score"],
+                ref_max_score=config["ref_max_score"],
             )
             evaluations.append({"step": step, **result.summary()})
             metrics_file.write(
@@ -199,16 +176,18 @@ def _train_d3rlpy(
     return finish_run(
         TrainResult(
             run_dir=str(run_dir),
-            task=task,
-            learner=f"d3rlpy:{algo_name}",
-            data=data,
-            eta=eta,
+            task=config["task"],
+            learner=learner,
+            data=config["data"],
+            eta=config["eta"],
             steps=steps,
             last={},
             best=None,
             updates_per_second=steps / train_seconds if train_seconds else 0.0,
             resumed_from=0,
             evaluations=evaluations,
+            seed=seed,
+            env_id=config["env_id"],
         ),
-        eval_episodes,
+        config["eval_episodes"],
     )

@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -22,6 +23,7 @@ from hipode_pipeline.device import select_device
 from hipode_pipeline.errors import DataFormatError, HipodeError, SettingError
 from hipode_pipeline.files import (
     file_sha256,
+    output_lock,
     save_torch_atomic,
     write_bytes_atomic,
     write_json_atomic,
@@ -30,6 +32,8 @@ from hipode_pipeline.models import training
 from hipode_pipeline.models.cvae import CVAE
 from hipode_pipeline.models.dynamics import LOSS_FORMS, DynamicsEnsemble
 from hipode_pipeline.models.value import PENALTY_FORMS, ValueEstimator
+from hipode_pipeline.seeding import derive_seed
+from hipode_pipeline.versions import GENERATOR_CODE, code_digest
 
 MODEL_NAMES = ("state_transition", "value", "inverse_action", "inverse_reward", "dynamics")
 PROFILES = ("full", "quick")
@@ -80,10 +84,8 @@ FIELD_OWNERS: dict[str, tuple[str, ...]] = {
 class GeneratorConfig:
     """Every setting of the five generators; [paper] and [decided] defaults from METHOD.md.
 
-    Budgets (steps) are per model and independent of the dataset size. The "full" profile
-    (these defaults) trained all five on hopper-m-r in 8.7 minutes on one thread of this
-    2-core machine while other jobs kept it busy (bench/results/models_precision.md), leaving
-    the rest of stage one's 15 minutes for generation and writing.
+    Budgets (steps) are per model and independent of the dataset size; the "full" profile's
+    time on hopper-m-r is in bench/results/models_precision.md.
     """
 
     # --- the three CVAEs (state transition, inverse action, inverse reward) ---
@@ -141,7 +143,8 @@ class GeneratorConfig:
             "dynamics_loss": (self.dynamics_loss in LOSS_FORMS, f"one of {LOSS_FORMS}"),
             "heldout_fraction": (0 < self.heldout_fraction < 1, "a fraction in (0, 1)"),
             "latent_clip": (self.latent_clip > 0, "a positive number"),
-            "sigma": (self.sigma >= 0, "a non-negative number"),
+            "sigma": (math.isfinite(self.sigma) and self.sigma >= 0, "a finite number >= 0"),
+            "alpha": (math.isfinite(self.alpha), "a finite number"),
         }
         for name in self.to_dict():
             if name.endswith("_precision") and getattr(self, name) not in training.PRECISIONS:
@@ -235,7 +238,10 @@ class Generators:
 
 
 def cache_dir_for(cache_root: Path, source_sha256: str, config: GeneratorConfig, seed: int) -> Path:
-    return Path(cache_root) / f"{source_sha256[:16]}-{config.hash()[:12]}-seed{seed}"
+    """<source sha256>-<code digest>-<config hash>-seed<seed>: the code that trains the models is
+    part of the key, so edited model code never reuses weights trained by the old one."""
+    code = code_digest(GENERATOR_CODE)[:12]
+    return Path(cache_root) / f"{source_sha256[:16]}-{code}-{config.hash()[:12]}-seed{seed}"
 
 
 def build_models(
@@ -279,7 +285,7 @@ def build_models(
     }
     models = {}
     for name, make in makers.items():
-        with training.seeded_init(training.derive_seed(seed, f"init:{name}")):
+        with training.seeded_init(derive_seed(seed, f"init:{name}")):
             models[name] = make()
     return models
 
@@ -399,16 +405,20 @@ def train_generators(
     device: str | torch.device | None = None,
     show_progress: bool = True,
 ) -> Generators:
-    """Train the five models, or load the finished ones from
-    `cache_root/<source_sha256[:16]>-<config.hash()[:12]>-seed<seed>/`; an interrupted model
-    resumes from its last checkpoint there."""
+    """Train the five models, or load the finished ones from their cache folder under
+    `cache_root` (`cache_dir_for`); an interrupted model resumes from its last checkpoint there."""
     device = device if isinstance(device, torch.device) else select_device(device)
     cache_dir = cache_dir_for(cache_root, source_sha256, config, seed)
     cache_dir.mkdir(parents=True, exist_ok=True)
     if not (cache_dir / "config.json").exists():
         write_json_atomic(
             cache_dir / "config.json",
-            {"source_sha256": source_sha256, "seed": seed, "config": config.to_dict()},
+            {
+                "source_sha256": source_sha256,
+                "seed": seed,
+                "code_digest": code_digest(GENERATOR_CODE),
+                "config": config.to_dict(),
+            },
         )
     normalizer = StateNormalizer.fit(transitions.observations, eps=config.normalizer_eps)
     if not (cache_dir / "normalizer.json").exists():
@@ -424,35 +434,37 @@ def train_generators(
     with progress_display(disable=not show_progress) as prog:
         for name in MODEL_NAMES:
             weights_path, record_path = cache_dir / f"{name}.pt", cache_dir / f"{name}.json"
-            if not weights_path.exists():
-                _adopt_from_sibling(cache_dir, name, config, weights_path, record_path)
-            if weights_path.exists() and record_path.exists():
-                _load_weights(models[name], weights_path)
-                record = json.loads(record_path.read_text())
-                report[name] = {**record, "cached": True}
-                continue
-            if data is None:
-                data = transition_tensors(transitions, normalizer, config, seed, device)
-            train_loss, heldout_loss = losses[name]
-            after_step = models["value"].update_target if name == "value" else None
-            record = training.fit(
-                name,
-                models[name],
-                train_loss,
-                heldout_loss,
-                data,
-                seed=seed,
-                eval_every=config.eval_every,
-                checkpoint_every=config.checkpoint_every,
-                checkpoint_path=cache_dir / f"{name}.ckpt.pt",
-                after_step=after_step,
-                progress=prog,
-                **settings[name],
-            )
-            save_torch_atomic(weights_path, models[name].state_dict())
-            write_json_atomic(record_path, record.to_dict())
-            (cache_dir / f"{name}.ckpt.pt").unlink(missing_ok=True)
-            report[name] = record.to_dict()
+            # a second stage one on the same cache waits here, then loads what the first trained
+            with output_lock(weights_path, command=f"hipode augment (generator {name})"):
+                if not weights_path.exists():
+                    _adopt_from_sibling(cache_dir, name, config, weights_path, record_path)
+                if weights_path.exists() and record_path.exists():
+                    _load_weights(models[name], weights_path)
+                    record = json.loads(record_path.read_text())
+                    report[name] = {**record, "cached": True}
+                    continue
+                if data is None:
+                    data = transition_tensors(transitions, normalizer, config, seed, device)
+                train_loss, heldout_loss = losses[name]
+                after_step = models["value"].update_target if name == "value" else None
+                record = training.fit(
+                    name,
+                    models[name],
+                    train_loss,
+                    heldout_loss,
+                    data,
+                    seed=seed,
+                    eval_every=config.eval_every,
+                    checkpoint_every=config.checkpoint_every,
+                    checkpoint_path=cache_dir / f"{name}.ckpt.pt",
+                    after_step=after_step,
+                    progress=prog,
+                    **settings[name],
+                )
+                save_torch_atomic(weights_path, models[name].state_dict())
+                write_json_atomic(record_path, record.to_dict())
+                (cache_dir / f"{name}.ckpt.pt").unlink(missing_ok=True)
+                report[name] = record.to_dict()
     for model in models.values():
         model.eval().requires_grad_(False)
     hashes = {name: file_sha256(cache_dir / f"{name}.pt") for name in MODEL_NAMES}
@@ -473,9 +485,11 @@ def _adopt_from_sibling(
     """Copy model `name` from another config's cache of the same source and seed when that
     config trained it with identical settings (GeneratorConfig.model_key): same inputs, same
     per-model seeds, so the same weights."""
-    source_prefix, seed_suffix = cache_dir.name.split("-")[0], cache_dir.name.rsplit("-", 1)[1]
+    source_prefix, code_part, _ = cache_dir.name.split("-", 2)
+    seed_suffix = cache_dir.name.rsplit("-", 1)[1]
     key = config.model_key(name)
-    for sibling in sorted(cache_dir.parent.glob(f"{source_prefix}-*-{seed_suffix}")):
+    # only caches of the same source, code and seed: other code may train other weights
+    for sibling in sorted(cache_dir.parent.glob(f"{source_prefix}-{code_part}-*-{seed_suffix}")):
         weights, record = sibling / f"{name}.pt", sibling / f"{name}.json"
         if sibling == cache_dir or not (weights.exists() and record.exists()):
             continue

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import contextlib
 import copy
-import hashlib
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
@@ -18,7 +17,9 @@ from rich.progress import Progress, TaskID
 from torch import Tensor, nn
 
 from hipode_pipeline.console import rate_text
+from hipode_pipeline.errors import TrainingDivergedError
 from hipode_pipeline.files import load_torch, save_torch_atomic
+from hipode_pipeline.seeding import derive_seed
 
 KEEP_BEST_MODES = ("none", "model", "member")
 PRECISIONS = ("fp32", "bf16")
@@ -43,12 +44,6 @@ class TrainingRecord:
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
-
-
-def derive_seed(seed: int, name: str) -> int:
-    """A stable per-purpose seed, so each model's randomness is independent of the others'."""
-    digest = hashlib.sha256(f"{seed}:{name}".encode()).digest()
-    return int.from_bytes(digest[:8], "little") % (2**63)
 
 
 @contextlib.contextmanager
@@ -226,6 +221,15 @@ def fit(
     seconds += time.perf_counter() - started
     if best.state is not None:
         model.load_state_dict(best.state)
+    state = model.state_dict().values()
+    if not all(bool(torch.isfinite(t).all()) for t in state if t.is_floating_point()):
+        # nothing non-finite may reach the cache, where every later run would reuse it
+        checkpoint_path.unlink(missing_ok=True)
+        raise TrainingDivergedError(
+            f"generator '{name}': expected finite weights after {step} steps, found NaN/inf "
+            f"(held-out loss {float(last.mean()):.4g}); nothing was cached. Lower the "
+            "penalty weight or the learning rate, or check the source for extreme values"
+        )
     return TrainingRecord(
         steps=step,
         seconds=round(seconds, 3),

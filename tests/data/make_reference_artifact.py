@@ -2,6 +2,10 @@
 changes on purpose: bump SCHEMA_VERSION, update docs/schema.md, then run this).
 
     python tests/data/make_reference_artifact.py
+
+Files of older minor versions stay committed beside it (LEGACY_REFERENCES), never rebuilt: they
+are what the readers must keep reading. Before a bump, copy the current reference to
+`reference_artifact_<old version with _>.hdf5` and add it there.
 """
 
 from __future__ import annotations
@@ -15,6 +19,8 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 REFERENCE_NAME = "reference_artifact.hdf5"
 SCHEMA_NAME = "artifact_schema.json"
+# schema version -> committed file written by that version's writer (same content as MANIFEST)
+LEGACY_REFERENCES = {"1.0": "reference_artifact_1_0.hdf5"}
 ROWS, OBS_DIM, ACT_DIM = 48, 3, 2
 # fixed, so the file's bytes depend only on the writer
 MANIFEST = {
@@ -63,6 +69,10 @@ def main(folder: Path = HERE) -> None:
     write_artifact(path, transitions, diagnostics, manifest, force=True)
     description = schema_description()
     description["reference_file"] = {"name": REFERENCE_NAME, "sha256": file_sha256(path)}
+    description["legacy_reference_files"] = {
+        version: {"name": name, "sha256": file_sha256(folder / name)}
+        for version, name in LEGACY_REFERENCES.items()
+    }
     (folder / SCHEMA_NAME).write_text(json.dumps(description, indent=2, sort_keys=True) + "\n")
     print(f"wrote {path} ({path.stat().st_size} bytes) and {folder / SCHEMA_NAME}")
 

@@ -1,10 +1,10 @@
-"""One (task, arm, seed) run of bench/quality.py: TD3+BC through `run_training`, in whatever
-process executes it (the driver, a local worker process or a Ray worker).
+"""One (task, learner, arm, seed) run of a sweep: `run_training` in whatever process executes it
+(the driver, a local worker process or a Ray worker).
 
-Kept apart from the driver so that worker processes import only this and the library; the
-driver sends a plain dict (RunSpec.to_dict) and gets a plain dict back (the run's record).
-A run whose folder already holds a finished run with the same settings is not trained again:
-its scores are read back, which is what makes a sweep resumable across sessions.
+Worker processes import only this module and the library; the driver sends a plain dict
+(RunSpec.to_dict) and gets a plain dict back (the run's record). A run whose folder already
+holds a finished run with the same settings is not trained again: its scores are read back,
+which is what makes a sweep resumable across sessions.
 """
 
 from __future__ import annotations
@@ -13,8 +13,6 @@ import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
-
-LEARNER = "td3bc"
 
 
 @dataclass(frozen=True)
@@ -29,7 +27,7 @@ class RunSpec:
     steps: int  # updates of the run (the budget)
     eval_every: int  # updates between evaluations
     eval_episodes: int  # episodes per evaluation
-    out_dir: str  # the sweep's results folder; runs go under <out_dir>/<task>/<arm>/
+    out_dir: str  # the sweep's folder; runs go under <out_dir>/<task>/<arm>/
     root: str  # dataset root (source datasets and artifacts)
     source: str | None = None  # source dataset id or file; None: the task's collected dataset
     artifact: str | None = None  # synthetic artifact for data=merged
@@ -38,26 +36,25 @@ class RunSpec:
     threads: int = 1  # torch threads in the worker (the machine is shared by the workers)
     force: bool = False  # train again even if a finished run exists
     mixing: str = "mixed"  # batch composition: mixed (η·B synthetic per batch) | union
+    learner: str = "td3bc"  # the offline learner trained
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
 
     def run_dir(self) -> Path:
-        from hipode_pipeline.train import run_folder
-
-        return run_folder(
-            Path(self.out_dir) / self.task / self.arm, self.task, LEARNER, self.data, self.seed
-        )
+        """The run's own folder: the sweep names it, so arms never share one."""
+        return Path(self.out_dir) / self.task / self.arm / f"{self.learner}-seed{self.seed}"
 
 
 def finished_scores(spec: RunSpec) -> dict[str, Any] | None:
     """The scores.json of a finished run with this spec's settings; None if there is none yet.
     A finished run with other settings is refused rather than silently reported."""
-    from hipode_pipeline import train
+    from hipode_pipeline.run_folder import finished_scores as folder_scores
 
     if spec.force:
         return None
     expected = {
+        "learner": spec.learner,
         "data": spec.data,
         "eta": spec.eta,
         "mixing": spec.mixing,
@@ -66,7 +63,7 @@ def finished_scores(spec: RunSpec) -> dict[str, Any] | None:
         "eval_episodes": spec.eval_episodes,
         "artifact_checksum": spec.artifact_checksum,
     }
-    return train.finished_scores(spec.run_dir(), spec.steps, expected)
+    return folder_scores(spec.run_dir(), spec.steps, expected)
 
 
 def evaluation_at(evaluations: list[dict[str, Any]], step: int, run_dir: Path) -> dict[str, Any]:
@@ -89,6 +86,7 @@ def run_record(spec: RunSpec, scores: dict[str, Any], status: str) -> dict[str, 
     final = evaluation_at(curve, spec.steps, run_dir)
     return {
         "task": spec.task,
+        "learner": spec.learner,
         "arm": spec.arm,
         "seed": spec.seed,
         "data": spec.data,
@@ -118,21 +116,26 @@ def run_one(spec_dict: dict[str, Any]) -> dict[str, Any]:
     torch.set_num_threads(spec.threads)
     result = run_training(
         spec.task,
-        LEARNER,
+        spec.learner,
         data=spec.data,
         steps=spec.steps,
         seed=spec.seed,
         eval_every=spec.eval_every,
         eval_episodes=spec.eval_episodes,
-        out_dir=Path(spec.out_dir) / spec.task / spec.arm,
         source=spec.source,
         artifact=None if spec.artifact is None else Path(spec.artifact),
         eta=spec.eta,
         mixing=spec.mixing,
         device=spec.device,
         root=Path(spec.root),
+        run_dir=spec.run_dir(),
         force=spec.force,
         show_progress=False,  # the driver shows one bar over all runs
     )
-    status = f"resumed from step {result.resumed_from}" if result.resumed_from else "trained"
+    if result.finished_earlier:
+        status = "finished earlier"
+    elif result.resumed_from:
+        status = f"resumed from step {result.resumed_from}"
+    else:
+        status = "trained"
     return run_record(spec, result.to_dict(), status)

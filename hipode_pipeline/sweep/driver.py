@@ -1,0 +1,156 @@
+"""The sweep end to end: plan the runs, execute them on the chosen engine, write the report.
+
+Every (task, learner, arm, seed) is one run folder under --out
+(<out>/<task>/<arm>/<learner>-seed<seed>/), so a sweep resumes where it stopped: finished runs
+are read back, unfinished ones continue from their checkpoint.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import shlex
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+
+from hipode_pipeline import console
+from hipode_pipeline.errors import HipodeError, SettingError
+from hipode_pipeline.files import write_json_atomic, write_text_atomic
+from hipode_pipeline.paths import use_datasets_root
+from hipode_pipeline.sweep.engines import read_finished, run_local, run_ray
+from hipode_pipeline.sweep.machine import LoadSampler
+from hipode_pipeline.sweep.plan import ENGINES, SweepConfig, resolve_budget, run_specs
+from hipode_pipeline.sweep.report import QualityReport, curve_plot, markdown, summarize
+
+
+def display_path(path: str | Path | None) -> str | None:
+    """A path as the report shows it: relative to the working directory when inside it."""
+    if path is None:
+        return None
+    resolved, here = Path(path).resolve(), Path.cwd().resolve()
+    return str(resolved.relative_to(here)) if resolved.is_relative_to(here) else str(path)
+
+
+def results_dir(config: SweepConfig) -> Path:
+    """Where the report goes: --results, else <out>/report."""
+    return config.results if config.results is not None else config.out / "report"
+
+
+def command_line(config: SweepConfig) -> str:
+    """A command that reproduces this sweep."""
+    args = [*shlex.split(config.program), "--tasks", ",".join(config.tasks)]
+    if config.learners != ["td3bc"]:
+        args += ["--learners", ",".join(config.learners)]
+    args += ["--seeds", ",".join(str(s) for s in config.seeds)]
+    for flag, value in (
+        ("--steps", config.steps),
+        ("--budget", config.budget),
+        ("--eval-every", config.eval_every),
+        ("--eval-episodes", config.eval_episodes),
+        ("--source", config.source),
+        ("--artifact", config.artifact),
+        ("--address", config.address),
+        ("--device", config.device),
+    ):
+        if value is not None:
+            args += [flag, str(value)]
+    if config.alphas:
+        args += [f"--alpha={','.join(f'{a:g}' for a in config.alphas)}"]
+    if config.lams:
+        args += ["--lam", ",".join(f"{x:g}" for x in config.lams)]
+    args += ["--uniform"] if config.uniform else []
+    if config.penalties:
+        args += ["--penalty", ",".join(config.penalties)]
+    args += ["--union"] if config.union else []
+    if config.artifact_seed:
+        args += ["--artifact-seed", str(config.artifact_seed)]
+    if config.artifact_seeds:
+        args += ["--artifact-seeds", ",".join(str(seed) for seed in config.artifact_seeds)]
+    args += [] if config.baseline_arms else ["--no-baselines"]
+    args += ["--report-only"] if config.report_only else []
+    if config.profile != "full":
+        args += ["--profile", config.profile]
+    args += ["--engine", config.engine, "--workers", str(config.workers)]
+    return shlex.join(args)
+
+
+def run_sweep(config: SweepConfig) -> QualityReport:
+    """Run (or resume) the sweep and write quality.md, quality.json and quality.png."""
+    import torch
+
+    from hipode_pipeline.device import select_device
+
+    if config.engine not in ENGINES:
+        raise SettingError(f"--engine: expected one of {ENGINES}, found {config.engine!r}")
+    if config.workers < 1 or config.threads < 1 or not config.seeds or not config.tasks:
+        raise SettingError("--workers, --threads: expected ≥ 1; --seeds, --tasks: not empty")
+    root = use_datasets_root(config.root)
+    config.out = config.out.resolve()
+    steps, eval_every, eval_episodes, budget = resolve_budget(config)
+    started, clock = datetime.now(UTC).isoformat(timespec="seconds"), time.perf_counter()
+    specs, arms = run_specs(config, root, display_path)
+    keys = {(a["learner"], a["name"]): a["key"] for task_arms in arms.values() for a in task_arms}
+    runs = []
+    with LoadSampler() as load, console.progress(disable=not config.show_progress) as prog:
+        bar = prog.add_task("sweep runs", total=len(specs), rate="", info="")
+        if config.report_only:
+            executed = read_finished(specs)
+        elif config.engine == "local":
+            executed = run_local(specs, config.workers)
+        else:
+            executed = run_ray(specs, config.address, config.workers)
+        for record in executed:
+            key = keys[record["learner"], record["arm"]]
+            runs.append({**record, "key": key, "run_dir": display_path(record["run_dir"])})
+            elapsed = time.perf_counter() - clock
+            prog.update(
+                bar,
+                advance=1,
+                rate=f"{len(runs) / elapsed * 3600:.1f} runs/h",
+                info=f"{record['task']} {key} seed {record['seed']}: {record['final_score']:.1f}",
+            )
+    if not runs:
+        raise HipodeError(f"{config.out}: no finished runs at {steps} steps to report")
+    report = QualityReport(
+        command=command_line(config),
+        budget={
+            "name": budget,
+            "learners": config.learners,
+            "steps": steps,
+            "eval_every": eval_every,
+            "eval_episodes": eval_episodes,
+            "seeds": config.seeds,
+            "report_only": config.report_only,
+        },
+        machine={
+            "platform": f"{platform.system()} {platform.machine()}",
+            "cpu_count": os.cpu_count(),
+            "torch": torch.__version__,
+            "device": str(select_device(config.device)),
+            "engine": config.engine + (f" ({config.address})" if config.address else ""),
+            "workers": config.workers,
+            "threads": config.threads,
+            "load_during": load.stats(),
+        },
+        arms=arms,
+        runs=sorted(runs, key=lambda r: (r["task"], r["learner"], r["arm"], r["seed"])),
+        summary=summarize(runs, arms),
+        started=started,
+        seconds=time.perf_counter() - clock,
+        note=config.note,
+    )
+    results = results_dir(config)
+    results.mkdir(parents=True, exist_ok=True)
+    png, md, js = (results / f"quality.{ext}" for ext in ("png", "md", "json"))
+    if curve_plot(report.runs, png, config.learners):
+        report.files["png"] = display_path(png)
+    else:
+        console.err.print(
+            "[yellow]no learning-curve plot: matplotlib is not installed "
+            "(pip install 'hipode-pipeline[plots]')[/]"
+        )
+    report.files.update(md=display_path(md), json=display_path(js))
+    write_text_atomic(md, markdown(report))
+    write_json_atomic(js, report.to_dict())
+    return report

@@ -1,0 +1,69 @@
+"""Where a sweep's runs execute: in this process (one worker), in fresh local processes
+(--workers N) or as Ray tasks (--engine ray, a local Ray unless --address names a cluster).
+Each yields the runs' records as they finish."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from multiprocessing import get_context
+from typing import Any
+
+from hipode_pipeline import console
+from hipode_pipeline.errors import HipodeError
+from hipode_pipeline.sweep.worker import RunSpec, finished_scores, run_one, run_record
+
+
+def run_local(specs: list[RunSpec], workers: int) -> Iterator[dict[str, Any]]:
+    """In this process (one worker) or in fresh spawned processes, one per run."""
+    if workers <= 1:
+        for spec in specs:
+            yield run_one(spec.to_dict())
+        return
+    with get_context("spawn").Pool(workers, maxtasksperchild=1) as pool:
+        yield from pool.imap_unordered(run_one, [spec.to_dict() for spec in specs])
+
+
+def read_finished(specs: list[RunSpec]) -> Iterator[dict[str, Any]]:
+    """The runs already finished at the budget, read back; the others are listed on stderr."""
+    missing = []
+    for spec in specs:
+        scores = finished_scores(spec)
+        if scores is None:
+            missing.append(f"{spec.task} {spec.learner} {spec.arm} seed {spec.seed}")
+            continue
+        yield run_record(spec, scores, "finished earlier")
+    if missing:
+        console.err.print(f"[yellow]not finished at this budget, left out: {', '.join(missing)}[/]")
+
+
+def run_ray(specs: list[RunSpec], address: str | None, workers: int) -> Iterator[dict[str, Any]]:
+    """One Ray task per run (1 CPU each); a local Ray with `workers` CPUs unless `address`.
+    A cluster's nodes need hipode-pipeline installed and --out and the dataset root at the
+    same paths: a task carries only its RunSpec."""
+    try:
+        import ray
+    except ImportError:
+        raise HipodeError(
+            "--engine ray: expected Ray to be installed; install it with "
+            "`pip install 'hipode-pipeline[ray]'` (ray[default]>=2.40) or pass --engine local"
+        ) from None
+    # busy-waiting OpenMP threads would starve the other runs on a node
+    env_vars = {"OMP_WAIT_POLICY": "PASSIVE", "MINARI_DATASETS_PATH": specs[0].root}
+    started_here = not ray.is_initialized()
+    if started_here:
+        ray.init(
+            address=address,
+            num_cpus=None if address else workers,
+            include_dashboard=False,
+            log_to_driver=False,
+            runtime_env={"env_vars": env_vars},
+        )
+    try:
+        remote = ray.remote(num_cpus=1, max_retries=0)(run_one)
+        pending = [remote.remote(spec.to_dict()) for spec in specs]
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            yield ray.get(done[0])
+    finally:
+        if started_here:
+            ray.shutdown()
