@@ -415,8 +415,13 @@ def _train_loop(
             rate="",
             info="",
         )
+        # metric sums stay on the device between log lines: no host sync per update
+        sums: dict[str, torch.Tensor] = {}
+        counts: dict[str, int] = {}
         while model.step < steps:
-            losses = model.update(replay.sample(batch_size))
+            for name, value in model.update(replay.sample(batch_size)).items():
+                sums[name] = sums[name] + value if name in sums else value.clone()
+                counts[name] = counts.get(name, 0) + 1
             step, window_steps = model.step, window_steps + 1
             evaluate_now = step % eval_every == 0 or step == steps
             if step % log_every and not evaluate_now:
@@ -430,9 +435,12 @@ def _train_loop(
             train_seconds += elapsed
             record: dict[str, Any] = {
                 "step": step,
-                **losses,
+                # each metric's mean over the updates since the last line
+                **{name: float(total) / counts[name] for name, total in sums.items()},
                 "updates_per_s": window_steps / elapsed,
+                "wall_s": round(elapsed, 3),
             }
+            sums, counts = {}, {}
             if evaluate_now:
                 result = evaluate()
                 evaluations.append({"step": step, **result.summary()})

@@ -200,7 +200,9 @@ class Learner:
         actions = actions.clamp(-self.config.max_action, self.config.max_action).cpu().numpy()
         return actions[0] if single else actions
 
-    def update(self, batch: Batch) -> dict[str, float]:
+    def update(self, batch: Batch) -> dict[str, torch.Tensor]:
+        """One update; its metrics as 0-dim tensors on the device, read by the driver only at
+        log time (a float() per update would wait for the device every step)."""
         raise NotImplementedError
 
     # ---- checkpoints --------------------------------------------------------------------

@@ -138,7 +138,7 @@ class CQL(Learner):
     def _policy_actions(self, observations: torch.Tensor) -> torch.Tensor:
         return self.actor(observations, deterministic=True)[0]
 
-    def update(self, batch: Batch) -> dict[str, float]:
+    def update(self, batch: Batch) -> dict[str, torch.Tensor]:
         c, g = self.config, self.generator
         obs, next_obs, actions = (
             self.normalize(batch.observations),
@@ -205,10 +205,10 @@ class CQL(Learner):
         self.optimizers["critic"].step()
         polyak_(self.critic_target, self.critic, c.tau)
         return {
-            "critic_loss": critic_loss.item(),
-            "td_loss": td_loss.sum().item(),
-            "cql_gap": cql_gap.mean().item(),
-            "actor_loss": actor_loss.item(),
-            "alpha": alpha.item(),
-            "q_mean": q_data.mean().item(),
+            "critic_loss": critic_loss.detach(),
+            "td_loss": td_loss.detach().sum(),
+            "cql_gap": cql_gap.detach().mean(),
+            "actor_loss": actor_loss.detach(),
+            "alpha": alpha.detach(),
+            "q_mean": q_data.detach().mean(),
         }

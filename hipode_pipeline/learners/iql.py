@@ -111,7 +111,7 @@ class IQL(Learner):
     def _policy_actions(self, observations: torch.Tensor) -> torch.Tensor:
         return self.config.max_action * self.actor(observations)
 
-    def update(self, batch: Batch) -> dict[str, float]:
+    def update(self, batch: Batch) -> dict[str, torch.Tensor]:
         c = self.config
         obs, next_obs = self.normalize(batch.observations), self.normalize(batch.next_observations)
         rewards = batch.rewards * self.reward_scale
@@ -151,8 +151,8 @@ class IQL(Learner):
         self.optimizers["actor"].step()
         self.schedulers["actor"].step()
         return {
-            "value_loss": value_loss.item(),
-            "critic_loss": critic_loss.item(),
-            "actor_loss": actor_loss.item(),
-            "q_mean": q.mean().item(),
+            "value_loss": value_loss.detach(),
+            "critic_loss": critic_loss.detach(),
+            "actor_loss": actor_loss.detach(),
+            "q_mean": q.detach().mean(),
         }

@@ -118,7 +118,7 @@ class TD3BC(Learner):
         polyak_(self.actor_target, self.actor, c.tau)
         return actor_loss.detach()
 
-    def update(self, batch: Batch) -> dict[str, float]:
+    def update(self, batch: Batch) -> dict[str, torch.Tensor]:
         c = self.config
         obs, next_obs = self.normalize(batch.observations), self.normalize(batch.next_observations)
         noise = torch.randn(batch.actions.shape, generator=self.generator, device=self.device)
@@ -130,4 +130,4 @@ class TD3BC(Learner):
         metrics = {"critic_loss": critic_loss, "q_mean": q_mean}
         if self.step % c.policy_freq == 0:
             metrics["actor_loss"] = self._actor_step(obs, batch.actions)
-        return {k: float(v) for k, v in metrics.items()}
+        return metrics
