@@ -41,7 +41,7 @@ from hipode_pipeline.run_folder import (
 )
 from hipode_pipeline.seeding import SEED_MAX
 from hipode_pipeline.simulator import check_env_id
-from hipode_pipeline.tasks import Task, get_task
+from hipode_pipeline.tasks import Task, all_tasks, get_task
 from hipode_pipeline.versions import package_versions
 
 DATA_CHOICES = ("merged", "source")
@@ -232,11 +232,27 @@ def run_training(
         ref_min, ref_max = task_obj.ref_min_score, task_obj.ref_max_score
 
     if family == "d3rlpy":
-        learner_config: dict[str, Any] = {"alpha": params.learner_alpha}
+        # the paper's learner alpha, and IQL's reward normalization as our IQL runs this task
+        iql_task = settings.get("iql", {}).get("tasks", {}).get(task_obj.name, {})
+        iql_default = learner_class("iql").config_class().normalize_reward
+        learner_config: dict[str, Any] = {
+            "alpha": params.learner_alpha,
+            "normalize_reward": bool(iql_task.get("normalize_reward", iql_default)),
+        }
         cls = None
     else:
         cls = learner_class(learner)
-        overrides = {**per_learner.get("config", {}), **(learner_settings or {})}
+        per_task = per_learner.get("tasks", {})
+        unknown = sorted(set(per_task) - set(all_tasks()))
+        if unknown:
+            raise SettingError(
+                f"stages/train.toml [{learner}.tasks]: expected task short names, found {unknown}"
+            )
+        overrides = {
+            **per_learner.get("config", {}),
+            **per_task.get(task_obj.name, {}),
+            **(learner_settings or {}),
+        }
         if params.learner_alpha is not None and learner in ("td3bc", "cql"):
             overrides.setdefault(
                 "alpha" if learner == "td3bc" else "cql_alpha", float(params.learner_alpha)
@@ -245,7 +261,8 @@ def run_training(
             overrides.setdefault("max_steps", steps)
         learner_config = cls.config_class.from_dict(
             overrides,
-            origin=f"learner settings (table {learner}.config of stages/train.toml, overrides)",
+            origin=f"learner settings ({learner}.config / {learner}.tasks.{task_obj.name} of "
+            "stages/train.toml, overrides)",
         ).to_dict()
 
     manifest = merged.artifact_manifest or {}

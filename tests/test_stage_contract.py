@@ -237,3 +237,45 @@ def test_changed_code_retrains_generators_and_rebuilds_the_artifact(tmp_path, mo
     stored = {**request.__dict__, "code_digest": "0" * 64}
     assert any(name.startswith("code") for name in request.differences(stored))
     assert request.differences(dict(request.__dict__)) == []
+
+
+def test_iql_runs_with_corls_per_task_settings(tmp_path, source_root):
+    """stages/train.toml's [iql.tasks.*]: CORL's deterministic actor, tau 0.001 and reward
+    normalization on hopper-m-r; IQLConfig's defaults (CORL's for most tasks) on walker2d-m-r."""
+    hopper = train(source_root, tmp_path, "--learner", "iql", "--data", "source")
+    assert hopper.exit_code == 0, hopper.output
+    walker_source = write_source(
+        source_root / "walker.hdf5", obs_dim=17, act_dim=6, env_id="Walker2d-v5"
+    )
+    walker = CliRunner().invoke(
+        app,
+        [
+            "train",
+            "walker2d-m-r",
+            "--learner",
+            "iql",
+            "--data",
+            "source",
+            "--source",
+            str(walker_source),
+            "--out",
+            str(tmp_path),
+            *TINY,
+            "--json",
+        ],
+    )
+    assert walker.exit_code == 0, walker.output
+    configs = {
+        name: json.loads((Path(json.loads(r.stdout)["run_dir"]) / "config.json").read_text())
+        for name, r in (("hopper", hopper), ("walker", walker))
+    }
+    settings = {
+        name: {
+            k: c["learner_config"][k] for k in ("deterministic_policy", "tau", "normalize_reward")
+        }
+        for name, c in configs.items()
+    }
+    assert settings == {
+        "hopper": {"deterministic_policy": True, "tau": 0.001, "normalize_reward": True},
+        "walker": {"deterministic_policy": False, "tau": 0.005, "normalize_reward": False},
+    }

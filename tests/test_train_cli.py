@@ -253,3 +253,31 @@ def test_d3rlpy_learner_trains_a_few_steps(tmp_path, tiny_pair):
         show_progress=False,
     )
     assert result.steps == 20 and result.last["return_mean"] is not None
+
+
+@pytest.mark.parametrize(
+    ("algo", "expected"),
+    [
+        ("TD3PlusBC", {"alpha": 2.5}),
+        ("CQL", {"conservative_weight": 10.0}),
+        # hopper-m-r: CORL's IQL normalizes rewards (stages/train.toml), so d3rlpy's does too
+        ("IQL", {"reward_scaler": "ReturnBasedRewardScaler"}),
+    ],
+)
+def test_d3rlpy_gets_the_papers_alpha_and_iqls_reward_scaling(tmp_path, tiny_pair, algo, expected):
+    pytest.importorskip("d3rlpy", reason="the d3rlpy extra is not installed")
+    source, artifact = tiny_pair
+    result = run_training(
+        "hopper-m-r",
+        f"d3rlpy:{algo}",
+        steps=4,
+        eval_every=4,
+        eval_episodes=1,
+        out_dir=tmp_path,
+        source=source,
+        artifact=artifact,
+        batch_size=16,
+        show_progress=False,
+    )
+    settings = json.loads((Path(result.run_dir) / "config.json").read_text())["d3rlpy_settings"]
+    assert expected.items() <= settings.items(), settings

@@ -29,6 +29,8 @@ from hipode_pipeline.files import write_json_atomic
 from hipode_pipeline.run_folder import TrainResult, finish_run, open_run_dir
 
 D3RLPY_VERSION = "2.8.1"
+# where each d3rlpy algorithm takes the paper's learner alpha (TD3+BC's alpha, CQL's weight)
+ALPHA_FIELDS = {"TD3PlusBC": "alpha", "CQL": "conservative_weight", "CalQL": "conservative_weight"}
 
 
 def require_d3rlpy():
@@ -123,12 +125,26 @@ def _train_d3rlpy(
     )
     settings: dict[str, Any] = {"batch_size": config["batch_size"], "observation_scaler": scaler}
     learner_alpha = config["learner_config"].get("alpha")
-    if algo_name == "TD3PlusBC" and learner_alpha is not None:
-        settings["alpha"] = learner_alpha
+    if learner_alpha is not None and algo_name in ALPHA_FIELDS:
+        settings[ALPHA_FIELDS[algo_name]] = float(learner_alpha)
+    if algo_name == "IQL" and config["learner_config"].get("normalize_reward"):
+        # r · 1000 / (max − min episode return), fitted on the real buffer as our IQL does
+        totals = real.episode_returns()
+        settings["reward_scaler"] = d3rlpy.preprocessing.ReturnBasedRewardScaler(
+            return_max=float(totals.max()), return_min=float(totals.min()), multiplier=1000.0
+        )
     algo = config_class(**settings).create(device="cuda:0" if device.type == "cuda" else "cpu:0")
     real_buffer, buffer = build_d3rlpy_buffer(real, merged.synthetic, config["eta"])
     algo.build_with_dataset(real_buffer)
-    config = {**config, "versions": {**config["versions"], "d3rlpy": d3rlpy.__version__}}
+    config = {
+        **config,
+        # what this run passed to d3rlpy beyond its defaults (objects by their class name)
+        "d3rlpy_settings": {
+            name: value if isinstance(value, int | float) else type(value).__name__
+            for name, value in settings.items()
+        },
+        "versions": {**config["versions"], "d3rlpy": d3rlpy.__version__},
+    }
     write_json_atomic(run_dir / "config.json", config)
     evaluations: list[dict[str, Any]] = []
     train_seconds = 0.0

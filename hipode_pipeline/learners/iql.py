@@ -32,7 +32,8 @@ LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
 
 @dataclass
 class IQLConfig(LearnerConfig):
-    """IQL's settings (CORL defaults)."""
+    """IQL's settings: CORL's defaults here; CORL's per-task values (deterministic actor, tau,
+    reward normalization on some Hopper tasks) come from stages/train.toml."""
 
     beta: float = 3.0  # inverse temperature of the advantage weights
     expectile: float = 0.7  # tau of the expectile regression of V
@@ -42,7 +43,7 @@ class IQLConfig(LearnerConfig):
     value_lr: float = 3e-4  # V learning rate
     max_steps: int = 1_000_000  # length of the actor's cosine schedule (the run sets it)
     deterministic_policy: bool = False  # regress a deterministic actor instead of a Gaussian
-    normalize_reward: bool = True  # scale rewards by 1000 / (max - min real episode return)
+    normalize_reward: bool = False  # scale rewards by 1000 / (max - min real episode return)
 
 
 def expectile_loss(diff: torch.Tensor, expectile: float) -> torch.Tensor:
