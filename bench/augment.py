@@ -12,7 +12,10 @@ Writes bench/results/augment.json and bench/results/augment.md.
 With --threads-study it instead times stage one (quick profile, --force, on a seeded
 Hopper-shaped D4RL-format source) with each torch thread count, on the machine as it is
 ("idle") and with two CPU-burning processes beside it ("busy"), in interleaved rounds, and
-records that as its own section of the same two files:
+records that as its own section of the same two files. The count reaches the run through
+OMP_NUM_THREADS, which stage one now honours for generation only: training is fixed at
+threads.STAGE_ONE_THREADS["train"] (its weights depend on the count), chosen by the study
+recorded in bench/results/augment.md, which ran before that was fixed.
 
     nice -n 10 python bench/augment.py --threads-study [--rows 30000] [--rounds 2]
 """

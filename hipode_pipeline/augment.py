@@ -208,9 +208,11 @@ def run_augment(
             overrides["penalty"] = penalty
         generator_config = GeneratorConfig.profile(profile, **overrides)
         check_seed(seed)
+        stage_one_threads("generate")  # a bad OMP_NUM_THREADS fails here, before any work
         torch_device = select_device(device)
         root = use_datasets_root(root)
-        if out is not None:
+        out_given = out is not None
+        if out_given:
             check_output_file(Path(out), "--out")
         transitions, info = _load_or_collect(task, source, root, show_progress)
         env_id = info.env_id or task.env_id
@@ -244,6 +246,7 @@ def run_augment(
                 source_tag=None if own_source else info.sha256[:8],
             )
         )
+        check_output_file(out, "--out" if out_given else "the default artifact path")
         request = ArtifactRequest(
             task.name, info.sha256, asdict(generation), generator_config.to_dict(), seed
         )

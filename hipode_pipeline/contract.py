@@ -175,8 +175,9 @@ def manifest_matches(
     if seeds.get("seed") != seed:
         problems.append(f"stage-one seed {seeds.get('seed')!r} (expected {seed})")
     found = ArtifactSettings.from_manifest(manifest)
-    table = [d for d in differences(expected, found) if d.split(" ")[0] in TABLE_FIELDS]
-    return problems + (table if found is not None else ["no generation settings recorded"])
+    # the table's settings, and no ablation variant: only the generator profile may differ
+    compared = [d for d in differences(expected, found) if d.split(" ")[0] != "profile"]
+    return problems + (compared if found is not None else ["no generation settings recorded"])
 
 
 def find_artifact(
@@ -187,6 +188,7 @@ def find_artifact(
     artifact_seed: int,
     root: Path | None = None,
     source_tag: str | None = None,
+    source_spec: str | None = None,
 ) -> tuple[Path, dict[str, Any]]:
     """The artifact `learner`'s table row asks for, from stage-one seed `artifact_seed`: the
     default-named file, else any artifact of the task whose manifest matches (full profile
@@ -195,8 +197,16 @@ def find_artifact(
 
     expected = table_settings(task, learner)
     row = table_learner(learner)
-    build = f"hipode augment {task.name}" + (f" --learner {row}" if row != "td3bc" else "")
-    build += f" --seed {artifact_seed}" if artifact_seed else ""
+    extra = [f"--learner {row}"] if row != "td3bc" else []
+    extra += [f"--seed {artifact_seed}"] if artifact_seed else []
+    # the build command must name the same source and root, or it builds another file
+    extra += [f"--source {source_spec}"] if source_spec else []
+    extra += [f"--root {root}"] if root is not None else []
+    build = " ".join([f"hipode augment {task.name}", *extra])
+    if not source_spec and root is None:
+        make_args = f' ARGS="--seed {artifact_seed}"' if artifact_seed else ""
+        learner_arg = f" LEARNER={row}" if row != "td3bc" else ""
+        build += f"` (or `make augment TASK={task.name}{learner_arg}{make_args}`"
     folder = artifacts_dir(root)
     default = default_artifact_path(
         task, expected, seed=artifact_seed, root=root, source_tag=source_tag
@@ -225,7 +235,7 @@ def find_artifact(
         else:
             matching.append((path, manifest))
     if matching:
-        # the default-named full-profile file first, then full-profile variants, then others
+        # the default-named file first, then full-profile files, then others (quick)
         def rank(item: tuple[Path, dict[str, Any]]) -> tuple[int, int, str]:
             found = ArtifactSettings.from_manifest(item[1])
             return (item[0] != default, bool(found and found.variant_tags()), item[0].name)
@@ -236,8 +246,7 @@ def find_artifact(
     if not mismatched:
         raise DatasetNotFoundError(
             f"no synthetic artifact for {task.name} under {folder} ({origin}, stage-one seed "
-            f"{artifact_seed}); run `{build}` (or `make augment TASK={task.name}"
-            f"{' LEARNER=' + row if row != 'td3bc' else ''}`) first, pass --artifact FILE, "
+            f"{artifact_seed}); run `{build}` first, pass --artifact FILE, "
             "or train on --data source"
         )
     shown = "; ".join(

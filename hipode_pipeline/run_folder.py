@@ -99,6 +99,17 @@ def run_folder(out_dir: Path, config: dict[str, Any], name: str | None = None) -
     return task_dir / f"{learner}-{config['data']}{eta}{mixing}-{identity}-seed{config['seed']}"
 
 
+def data_identity(config: dict[str, Any]) -> dict[str, Any]:
+    """What a run trained on, as scores.json records it."""
+    keys = ("source_id", "source_sha256", "artifact_path", "artifact_checksum", "artifact_seed")
+    return {
+        **{key: config.get(key) for key in keys},
+        "eta": config["eta"],
+        "mixing": config["mixing"],
+        "artifact_hyper_parameters": config.get("artifact_hyper_parameters"),
+    }
+
+
 def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
     save_torch_atomic(path, state)
 
@@ -181,7 +192,9 @@ def check_run_dir(run_dir: Path, config: dict[str, Any], steps: int, force: bool
         return "replace" if run_dir.exists() else "fresh"
     if not (run_dir / "config.json").is_file():
         return "fresh"
-    differing = differing_settings(run_dir, {key: config[key] for key in (*IDENTITY_KEYS, "seed")})
+    # the seed and the evaluation schedule must match too: a resumed or finished run keeps its own
+    checked = (*IDENTITY_KEYS, "seed", "eval_every", "eval_episodes")
+    differing = differing_settings(run_dir, {key: config[key] for key in checked if key in config})
     if differing:
         raise OverwriteError(
             f"{run_dir} holds a run with other settings ({', '.join(differing)} differ); "
@@ -207,9 +220,15 @@ def truncate_metrics(path: Path, step: int) -> None:
     """Drop metric lines written after the checkpoint we resume from (they will be rewritten)."""
     if not path.is_file():
         return
-    kept = [
-        line for line in path.read_text().splitlines() if line and json.loads(line)["step"] <= step
-    ]
+    kept = []
+    for line in path.read_text().splitlines():
+        try:
+            record = json.loads(line)
+        except ValueError:
+            continue  # a line torn by a kill mid-write: it is rewritten after the resume
+        if isinstance(record, dict) and isinstance(record.get("step"), int):
+            if record["step"] <= step:
+                kept.append(line)
     write_text_atomic(path, "".join(line + "\n" for line in kept))
 
 

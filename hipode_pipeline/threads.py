@@ -11,8 +11,10 @@ import torch
 from hipode_pipeline.errors import SettingError
 
 THREADS_ENV_VAR = "OMP_NUM_THREADS"
-# stage one's torch threads per phase when the user has not chosen: training's 256-row steps
-# run faster on one thread, generation's large batches on two (bench/results/augment.md)
+# stage one's torch threads per phase (bench/results/augment.md): training's 256-row steps run
+# faster on one thread and its weights depend on the thread count, so it is fixed at one, which
+# keeps the same request giving the same generators on any machine; generation's large batches
+# run faster on two and give the same rows on any count, so the user's OMP_NUM_THREADS is kept
 STAGE_ONE_THREADS = {"train": 1, "generate": 2}
 
 
@@ -36,8 +38,10 @@ def torch_threads(n: int | None) -> Iterator[int]:
 
 
 def stage_one_threads(phase: str) -> int:
-    """Torch threads for a phase of stage one ("train" or "generate"): $OMP_NUM_THREADS when
-    set, else the measured default (never more than the machine's CPUs)."""
+    """Torch threads for a phase of stage one: "train" always the fixed count; "generate"
+    $OMP_NUM_THREADS when set, else the measured default (never more than the machine's CPUs)."""
+    if phase == "train":
+        return STAGE_ONE_THREADS["train"]
     given = os.environ.get(THREADS_ENV_VAR, "").strip()
     if given:
         # torch reads the same variable at start-up; stage one keeps the user's choice

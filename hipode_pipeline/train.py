@@ -24,7 +24,8 @@ from hipode_pipeline.data.load import load_source
 from hipode_pipeline.device import select_device
 from hipode_pipeline.errors import HipodeError, SettingError
 from hipode_pipeline.evaluate import EvalResult, check_data_fits_env, evaluate_policy
-from hipode_pipeline.files import write_json_atomic
+from hipode_pipeline.files import output_lock, write_json_atomic
+from hipode_pipeline.generate import MAX_ETA
 from hipode_pipeline.learners import learner_class
 from hipode_pipeline.learners.base import Learner
 from hipode_pipeline.merge import MergedData, load_merged
@@ -33,6 +34,7 @@ from hipode_pipeline.replay import MIXING_MODES, MixedReplay
 from hipode_pipeline.run_folder import (
     TrainResult,
     check_run_dir,
+    data_identity,
     finish_run,
     open_run_dir,
     run_folder,
@@ -95,12 +97,18 @@ def resolve_data(
             artifact_seed=artifact_seed,
             root=root,
             source_tag=None if own else info.sha256[:8],
+            source_spec=None if own else source,
         )
         choice = "table"
     merged = load_merged(source or task.name, artifact, root=root, loaded=loaded)
     params = (merged.artifact_manifest or {}).get("hyper_parameters")
     artifact_eta = params.get("eta") if isinstance(params, dict) else None
-    if not isinstance(artifact_eta, int | float) or not math.isfinite(artifact_eta):
+    # a rate outside (0, MAX_ETA] (or a bool) is no rate: the file records none we can use
+    if (
+        isinstance(artifact_eta, bool)
+        or not isinstance(artifact_eta, int | float)
+        or not 0 < artifact_eta <= MAX_ETA
+    ):
         artifact_eta = None
     return RunData(merged, choice, None if artifact_eta is None else float(artifact_eta))
 
@@ -126,12 +134,12 @@ def batch_eta(
                 f"the artifact records no synthetic rate: batch η = {table_eta:g} "
                 "from the learner's table row"
             )
-        if built > 1.0:
+        if built > 1.0 and mixing == "mixed":
             raise SettingError(
                 f"{data.merged.artifact_path}: built with eta {built:g} (more synthetic rows "
                 "than real ones); pass --eta in [0, 1] for the batch fraction"
             )
-        return built, None
+        return min(built, 1.0), None
     if built is None or mixing != "mixed" or requested <= built:
         return requested, None
     factor = requested / built
@@ -300,87 +308,85 @@ def run_training(
         "versions": package_versions(),
     }
     run_dir = Path(run_dir) if run_dir is not None else run_folder(out_dir, config, name)
-    state = check_run_dir(run_dir, config, steps, force)
-    if state == "finished":
-        scores = json.loads((run_dir / "scores.json").read_text())
-        console.err.print(f"{run_dir} already finished {scores.get('steps')} updates: its scores")
-        return TrainResult.from_dict({**scores, "finished_earlier": True})
-    if eta_note:
-        console.err.print(f"[yellow]note:[/] {eta_note}")
-    if run_data.artifact_choice == "table":
-        console.err.print(f"synthetic data: {merged.artifact_path} (the learner's table row)")
-
-    if cls is None:
-        from hipode_pipeline.learners.external import train_d3rlpy
-
-        return train_d3rlpy(
-            learner.split(":", 1)[1],
-            merged,
-            config=config,
-            run_dir=run_dir,
-            run_state=state,
-            device=device_obj,
-            show_progress=show_progress,
+    if data == "source" and (artifact is not None or eta is not None):
+        console.err.print(
+            "[yellow]note:[/] --data source trains on the source alone: "
+            "--artifact and --eta are not used"
         )
+    # one writer per run folder: a second identical command waits, then finds it finished
+    with output_lock(run_dir, command="hipode train"):
+        state = check_run_dir(run_dir, config, steps, force)
+        if state == "finished":
+            scores = json.loads((run_dir / "scores.json").read_text())
+            console.err.print(
+                f"{run_dir} already finished {scores.get('steps')} updates: its scores"
+            )
+            return TrainResult.from_dict({**scores, "finished_earlier": True})
+        if eta_note:
+            console.err.print(f"[yellow]note:[/] {eta_note}")
+        if run_data.artifact_choice == "table":
+            console.err.print(f"synthetic data: {merged.artifact_path} (the learner's table row)")
 
-    model = cls(
-        merged.real.obs_dim,
-        merged.real.act_dim,
-        cls.config_class.from_dict(learner_config),
-        device=device_obj,
-        seed=seed,
-    )
-    model.fit_statistics(merged.real)
-    config["bf16_autocast"] = bool(getattr(model, "use_bf16", False))
-    replay = MixedReplay(
-        merged.real, merged.synthetic, eta=eta, mixing=mixing, device=device_obj, seed=seed
-    )
-    checkpoint = open_run_dir(run_dir, state)
-    evaluations: list[dict[str, Any]] = []
-    resumed_from = 0
-    if checkpoint is not None:
-        model.load_state_dict(checkpoint["learner"])
-        replay.load_state_dict(checkpoint["replay"])
-        evaluations = list(checkpoint["evaluations"])
-        resumed_from = model.step
-        console.err.print(f"resuming {run_dir} from step {resumed_from}")
-    truncate_metrics(run_dir / "metrics.jsonl", resumed_from)
-    write_json_atomic(run_dir / "config.json", config)
+        if cls is None:
+            from hipode_pipeline.learners.external import train_d3rlpy
 
-    train_seconds = _train_loop(
-        model, replay, config, run_dir, evaluations, show_progress=show_progress
-    )
-    ran = model.step - resumed_from
-    return finish_run(
-        TrainResult(
-            run_dir=str(run_dir),
-            task=task_obj.name,
-            learner=learner,
-            data=data,
-            eta=eta,
-            steps=model.step,
-            last={},
-            best=None,
-            updates_per_second=ran / train_seconds if train_seconds > 0 else 0.0,
-            resumed_from=resumed_from,
-            evaluations=evaluations,
+            return train_d3rlpy(
+                learner.split(":", 1)[1],
+                merged,
+                config=config,
+                run_dir=run_dir,
+                run_state=state,
+                device=device_obj,
+                show_progress=show_progress,
+            )
+
+        model = cls(
+            merged.real.obs_dim,
+            merged.real.act_dim,
+            cls.config_class.from_dict(learner_config),
+            device=device_obj,
             seed=seed,
-            env_id=env_id,
-            data_identity=data_identity(config),
-        ),
-        eval_episodes,
-    )
+        )
+        model.fit_statistics(merged.real)
+        config["bf16_autocast"] = bool(getattr(model, "use_bf16", False))
+        replay = MixedReplay(
+            merged.real, merged.synthetic, eta=eta, mixing=mixing, device=device_obj, seed=seed
+        )
+        checkpoint = open_run_dir(run_dir, state)
+        evaluations: list[dict[str, Any]] = []
+        resumed_from = 0
+        if checkpoint is not None:
+            model.load_state_dict(checkpoint["learner"])
+            replay.load_state_dict(checkpoint["replay"])
+            evaluations = list(checkpoint["evaluations"])
+            resumed_from = model.step
+            console.err.print(f"resuming {run_dir} from step {resumed_from}")
+        truncate_metrics(run_dir / "metrics.jsonl", resumed_from)
+        write_json_atomic(run_dir / "config.json", config)
 
-
-def data_identity(config: dict[str, Any]) -> dict[str, Any]:
-    """What a run trained on, as scores.json records it."""
-    keys = ("source_id", "source_sha256", "artifact_path", "artifact_checksum", "artifact_seed")
-    return {
-        **{key: config.get(key) for key in keys},
-        "eta": config["eta"],
-        "mixing": config["mixing"],
-        "artifact_hyper_parameters": config.get("artifact_hyper_parameters"),
-    }
+        train_seconds = _train_loop(
+            model, replay, config, run_dir, evaluations, show_progress=show_progress
+        )
+        ran = model.step - resumed_from
+        return finish_run(
+            TrainResult(
+                run_dir=str(run_dir),
+                task=task_obj.name,
+                learner=learner,
+                data=data,
+                eta=eta,
+                steps=model.step,
+                last={},
+                best=None,
+                updates_per_second=ran / train_seconds if train_seconds > 0 else 0.0,
+                resumed_from=resumed_from,
+                evaluations=evaluations,
+                seed=seed,
+                env_id=env_id,
+                data_identity=data_identity(config),
+            ),
+            eval_episodes,
+        )
 
 
 def _scalars(values: Any) -> dict[str, Any] | None:

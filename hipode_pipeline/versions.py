@@ -18,8 +18,9 @@ VERSIONED_PACKAGES = ("torch", "numpy", "h5py", "gymnasium", "mujoco", "minari")
 PACKAGE_DIR = Path(hipode_pipeline.__file__).resolve().parent
 # the source files whose code determines trained generators (package-relative; folders whole)
 GENERATOR_CODE = ("models", "data/normalizer.py", "seeding.py")
-# ... and those that determine an artifact's rows beyond its generators
-ARTIFACT_CODE = (*GENERATOR_CODE, "generate.py", "envs.py", "augment.py", "artifact.py")
+# ... and those that determine an artifact's rows beyond its generators (Algorithm 1 and the
+# termination rules; the driver and the file writer only move the rows)
+ARTIFACT_CODE = (*GENERATOR_CODE, "generate.py", "envs.py")
 
 
 def package_versions() -> dict[str, str | None]:
@@ -68,5 +69,6 @@ def _code_digest(package_dir: Path, parts: tuple[str, ...]) -> str:
         files.update(path.rglob("*.py") if path.is_dir() else [path])
     for path in sorted(files):
         digest.update(path.relative_to(package_dir).as_posix().encode() + b"\0")
-        digest.update(path.read_bytes() + b"\0")
+        # line endings are the checkout's, not the code's
+        digest.update(path.read_bytes().replace(b"\r\n", b"\n") + b"\0")
     return digest.hexdigest()

@@ -46,8 +46,10 @@ def once(fn):
 
 import hipode_pipeline.augment as augment
 import hipode_pipeline.sharing as sharing
+import hipode_pipeline.train as train
 sharing.datasets_root = once(sharing.datasets_root)
 augment.use_datasets_root = once(augment.use_datasets_root)
+train.run_folder = once(train.run_folder)
 if os.environ.get("SLOW_COPY"):
     copy = shutil.copyfile
     def slow_copy(*args, **kwargs):
@@ -251,3 +253,19 @@ def test_a_lock_left_by_a_killed_holder_does_not_block(tmp_path):
     with files.output_lock(target, command="hipode test") as waited:
         assert not waited
     assert not files.lock_path(target).exists()
+
+
+def test_two_identical_trains_write_one_run(tmp_path, dataset_root):
+    source = write_source(tmp_path / "source.hdf5", n_episodes=8, length=25)
+    args = ["train", "hopper-m-r", "--source", source, "--data", "source", "--steps", "40"]
+    args += ["--eval-every", "20", "--eval-episodes", "1", "--out", tmp_path / "runs", "--json"]
+
+    results = _finish([_start(args, tmp_path), _start(args, tmp_path)])
+
+    assert [code for code, _, _ in results] == [0, 0], [err[-2000:] for _, _, err in results]
+    scores = [json.loads(stdout) for _, stdout, _ in results]
+    assert scores[0]["run_dir"] == scores[1]["run_dir"]
+    # one trained it, the other waited and read back the finished run
+    assert sorted(s["finished_earlier"] for s in scores) == [False, True]
+    lines = (Path(scores[0]["run_dir"]) / "metrics.jsonl").read_text().splitlines()
+    assert [json.loads(line)["step"] for line in lines] == [20, 40]

@@ -279,3 +279,76 @@ def test_iql_runs_with_corls_per_task_settings(tmp_path, source_root):
         "hopper": {"deterministic_policy": True, "tau": 0.001, "normalize_reward": True},
         "walker": {"deterministic_policy": False, "tau": 0.005, "normalize_reward": False},
     }
+
+
+def test_an_ablation_artifact_is_never_taken_for_the_table_row(tmp_path, source_root):
+    settings = table_settings(HOPPER, "td3bc")
+    uniform = type(settings)(**{**settings.to_dict(), "candidates": "uniform"})
+    path = default_artifact_path(HOPPER, uniform, root=source_root)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_synthetic(
+        path, source_root / "source.hdf5", hyper_parameters=uniform.to_dict(), seeds={"seed": 0}
+    )
+    result = train(source_root, tmp_path / "runs")
+    assert result.exit_code == ArtifactMismatchError.exit_code, result.output
+    message = " ".join(result.stderr.split())
+    assert "candidates 'uniform' (expected 'model')" in message
+    # the command it suggests builds from the same source into the same root
+    assert f"--source {source_root / 'source.hdf5'}" in message
+    assert f"--root {source_root}" in message
+    assert not (tmp_path / "runs").exists()
+
+
+def test_a_manifest_rate_that_is_no_rate_falls_back_to_the_table(tmp_path, source_root):
+    path = source_root / "zero.hdf5"
+    write_synthetic(path, source_root / "source.hdf5", hyper_parameters={"eta": 0.0})
+    given = train(source_root, tmp_path, "--artifact", str(path), "--eta", "0.1")
+    assert given.exit_code == 0, given.output
+    default = train(source_root, tmp_path, "--artifact", str(path))
+    assert default.exit_code == 0, default.output
+    assert (
+        json.loads(default.stdout)["eta"] == 0.5 and "records no synthetic rate" in default.stderr
+    )
+
+
+def test_a_run_keeps_its_evaluation_schedule(tmp_path, source_root):
+    first = train(source_root, tmp_path, "--data", "source", "--name", "r")
+    assert first.exit_code == 0, first.output
+    other = CliRunner().invoke(
+        app,
+        [
+            "train",
+            "hopper-m-r",
+            "--source",
+            str(source_root / "source.hdf5"),
+            "--data",
+            "source",
+            "--out",
+            str(tmp_path),
+            "--name",
+            "r",
+            "--steps",
+            "8",
+            "--eval-every",
+            "2",
+            "--eval-episodes",
+            "1",
+            "--batch-size",
+            "16",
+        ],
+    )
+    assert other.exit_code == 2 and "eval_every" in other.stderr
+
+
+def test_the_code_digest_ignores_line_endings(tmp_path, monkeypatch):
+    copy = tmp_path / "package"
+    shutil.copytree(
+        versions.PACKAGE_DIR, copy, ignore=shutil.ignore_patterns("__pycache__", "*.pyc")
+    )
+    monkeypatch.setattr(versions, "PACKAGE_DIR", copy)
+    before = versions.code_digest(versions.ARTIFACT_CODE)
+    cvae = copy / "models" / "cvae.py"
+    cvae.write_bytes(cvae.read_bytes().replace(b"\n", b"\r\n"))
+    versions._code_digest.cache_clear()
+    assert versions.code_digest(versions.ARTIFACT_CODE) == before
+    versions._code_digest.cache_clear()

@@ -123,7 +123,15 @@ def test_missing_artifact_tells_the_user_to_augment(tiny_pair):
     source, _ = tiny_pair
     result = CliRunner().invoke(app, ["train", "hopper-m-r", "--source", source, *TINY])
     assert result.exit_code == 2
-    assert "make augment TASK=hopper-m-r" in " ".join(result.output.split())
+    # a --source of its own: the command builds from that source, not the task's dataset
+    assert f"hipode augment hopper-m-r --source {source}" in " ".join(result.output.split())
+    # the task's own data: the make target too
+    make_minari_dataset("local/hopper/medium-replay-v0", make_episodes(6, 11, 3, seed=0))
+    own = CliRunner().invoke(app, ["train", "hopper-m-r", "--artifact-seed", "2", *TINY])
+    assert own.exit_code == 2
+    text = " ".join(own.output.split())
+    assert "hipode augment hopper-m-r --seed 2" in text
+    assert 'make augment TASK=hopper-m-r ARGS="--seed 2"' in text
 
 
 def test_interrupted_run_resumes_exactly(tmp_path, tiny_pair, monkeypatch):

@@ -26,7 +26,7 @@ from hipode_pipeline.data.transitions import Transitions
 from hipode_pipeline.errors import HipodeError
 from hipode_pipeline.evaluate import evaluate_policy
 from hipode_pipeline.files import write_json_atomic
-from hipode_pipeline.run_folder import TrainResult, finish_run, open_run_dir
+from hipode_pipeline.run_folder import TrainResult, data_identity, finish_run, open_run_dir
 
 D3RLPY_VERSION = "2.8.1"
 # where each d3rlpy algorithm takes the paper's learner alpha (TD3+BC's alpha, CQL's weight)
@@ -204,6 +204,7 @@ def _train_d3rlpy(
             evaluations=evaluations,
             seed=seed,
             env_id=config["env_id"],
+            data_identity=data_identity(config),
         ),
         config["eval_episodes"],
     )
