@@ -183,9 +183,15 @@ class CQL(Learner):
         )
         q_all = self.critic(obs.unsqueeze(1).expand(-1, 1 + 3 * n, -1), proposals)  # (2, B, 1 + 3n)
         q_data = q_all[:, :, 0]
+        # every proposal's log density in action units: the policy's is of tanh(u), scaled
         random_density = da * math.log(0.5 / c.max_action)
+        to_action_units = da * math.log(c.max_action)
         log_density = torch.cat(
-            [torch.full((B, n), random_density, device=self.device), next_log_pi_s, current_log_pi],
+            [
+                torch.full((B, n), random_density, device=self.device),
+                next_log_pi_s - to_action_units,
+                current_log_pi - to_action_units,
+            ],
             dim=1,
         )
         ood = torch.logsumexp((q_all[:, :, 1:] - log_density) / c.cql_temp, dim=-1) * c.cql_temp
