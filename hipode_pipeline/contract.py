@@ -211,9 +211,8 @@ def find_artifact(
     default = default_artifact_path(
         task, expected, seed=artifact_seed, root=root, source_tag=source_tag
     )
-    candidates = [default] + sorted(
-        path for path in folder.glob(f"{task.name}-*.hdf5") if path != default
-    )
+    # every artifact in the folder, whatever its name (an imported one keeps the sender's)
+    candidates = [default] + sorted(path for path in folder.glob("*.hdf5") if path != default)
     matching, mismatched = [], []
     for path in candidates:
         if not path.is_file():
@@ -221,7 +220,8 @@ def find_artifact(
         try:
             manifest = read_manifest(path)
         except (DataFormatError, DatasetNotFoundError, HipodeError) as error:
-            mismatched.append((path, [f"unreadable ({str(error)[:120]})"]))
+            if path.name.startswith(f"{task.name}-"):
+                mismatched.append((path, [f"unreadable ({str(error)[:120]})"]))
             continue
         problems = manifest_matches(
             manifest,
@@ -231,7 +231,8 @@ def find_artifact(
             expected=expected,
         )
         if problems:
-            mismatched.append((path, problems))
+            if manifest.get("task") == task.name:  # other tasks' files are not worth listing
+                mismatched.append((path, problems))
         else:
             matching.append((path, manifest))
     if matching:

@@ -162,6 +162,11 @@ def _acquire(lock: Path, path: Path) -> tuple[int | None, bool]:
         try:
             fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
         except FileNotFoundError:
+            if lock.parent.is_dir():
+                # the folder is there (the lock may be a dangling link): nothing to wait for
+                raise OverwriteError(
+                    f"{path}: expected a writable output place, found none for its lock {lock}"
+                ) from None
             continue  # another process removed the folder it had made for its own lock
         try:
             try:

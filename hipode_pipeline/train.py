@@ -148,8 +148,9 @@ def batch_eta(
         raise SettingError(
             f"--eta {requested:g}: {path} holds round({built:g}·N) synthetic rows, built for "
             f"batch η ≤ {built:g}; η = {requested:g} would draw each of them {factor:.1f}× as "
-            f"often (at most {MAX_SYNTHETIC_OVERUSE:g}× is allowed). Build an artifact with "
-            f"`hipode augment --eta {requested:g}` or pass --eta ≤ {ceiling:g}"
+            f"often (at most {MAX_SYNTHETIC_OVERUSE:g}× is allowed). Pass --eta ≤ {ceiling:g}, "
+            f"or build an artifact with `hipode augment TASK --eta {requested:g}` (plus the "
+            "learner's other settings) and train on it with --artifact FILE"
         )
     return requested, (
         f"--eta {requested:g} draws each synthetic row {factor:.1f}× as often as {path.name} "
@@ -219,6 +220,7 @@ def run_training(
     )
     log_every = _positive("log_every", run["log_every"] if log_every is None else log_every, 10**9)
 
+    requested_eta = eta
     run_data = resolve_data(
         task_obj,
         learner,
@@ -308,7 +310,7 @@ def run_training(
         "versions": package_versions(),
     }
     run_dir = Path(run_dir) if run_dir is not None else run_folder(out_dir, config, name)
-    if data == "source" and (artifact is not None or eta is not None):
+    if data == "source" and (artifact is not None or requested_eta is not None):
         console.err.print(
             "[yellow]note:[/] --data source trains on the source alone: "
             "--artifact and --eta are not used"

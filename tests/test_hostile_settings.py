@@ -176,3 +176,81 @@ def test_a_diverged_generator_never_reaches_the_cache(tmp_path):
             keep_best="none",
         )
     assert not checkpoint.exists()
+
+
+def test_the_machine_refusing_a_path_is_one_line_not_a_traceback(world, tmp_path):
+    root = tmp_path / "rootc"
+    root.mkdir()
+    (root / "cache").touch()  # a file where stage one needs its cache folder
+    result = CliRunner().invoke(
+        app,
+        [
+            "augment",
+            "hopper-m-r",
+            "--source",
+            str(world["hopper"]),
+            "--profile",
+            "quick",
+            "--root",
+            str(root),
+            "--out",
+            str(tmp_path / "a.hdf5"),
+        ],
+    )
+    assert result.exit_code == 2 and "Traceback" not in result.output
+    assert "Not a directory" in result.stderr and str(root / "cache") in result.stderr
+
+
+def test_a_lock_that_cannot_be_made_is_refused_not_waited_for(world, tmp_path):
+    folder = tmp_path / "lk"
+    folder.mkdir()
+    (folder / ".y.hdf5.lock").symlink_to(tmp_path / "nowhere" / "file")
+    result = CliRunner().invoke(
+        app,
+        [
+            "augment",
+            "hopper-m-r",
+            "--source",
+            str(world["hopper"]),
+            "--profile",
+            "quick",
+            "--root",
+            str(world["root"]),
+            "--out",
+            str(folder / "y.hdf5"),
+        ],
+    )
+    assert result.exit_code == 2 and "lock" in result.stderr
+
+
+@pytest.mark.parametrize("flag", ["--steps", "--eval-every", "--eval-episodes"])
+def test_sweep_refuses_zero_instead_of_taking_the_default(world, tmp_path, flag):
+    result = CliRunner().invoke(
+        app,
+        [
+            "sweep",
+            "--tasks",
+            "hopper-m-r",
+            "--source",
+            str(world["hopper"]),
+            "--seeds",
+            "0",
+            "--profile",
+            "quick",
+            "--root",
+            str(world["root"]),
+            "--out",
+            str(tmp_path / "s"),
+            "--steps",
+            "20",
+            "--eval-every",
+            "10",
+            "--eval-episodes",
+            "1",
+            flag,
+            "0",
+        ],
+    )
+    assert result.exit_code == 2, result.output
+    assert "expected positive integers" in result.stderr
+    assert not (tmp_path / "s").exists() or not any((tmp_path / "s").rglob("config.json"))

@@ -352,3 +352,16 @@ def test_the_code_digest_ignores_line_endings(tmp_path, monkeypatch):
     versions._code_digest.cache_clear()
     assert versions.code_digest(versions.ARTIFACT_CODE) == before
     versions._code_digest.cache_clear()
+
+
+def test_an_artifact_under_any_name_is_found_by_its_manifest(tmp_path, source_root):
+    """`hipode import` keeps the sender's file name: train reads manifests, not names."""
+    canonical = place_artifact(source_root, "td3bc")
+    shared = canonical.with_name("shared.hdf5")
+    canonical.rename(shared)
+    result = train(source_root, tmp_path)
+    assert result.exit_code == 0, result.output
+    config = json.loads((Path(json.loads(result.stdout)["run_dir"]) / "config.json").read_text())
+    assert config["artifact_path"] == str(shared) and config["artifact_choice"] == "table"
+    baseline = train(source_root, tmp_path, "--data", "source")
+    assert baseline.exit_code == 0 and "not used" not in baseline.stderr

@@ -26,6 +26,11 @@ def user_errors(fn):
             return fn(*args, **kwargs)
         except HipodeError as error:
             fail(error)
+        except OSError as error:
+            # the machine refused (permissions, a full disk, a file where a folder must be):
+            # the user's to fix, so one line naming the path, not a traceback
+            where = error.filename if error.filename is not None else "a file"
+            fail(HipodeError(f"{where}: {error.strerror or error}"))
 
     return wrapper
 

@@ -160,9 +160,13 @@ def resolve_budget(config: SweepConfig) -> tuple[int, int, int, str]:
     if budget not in BUDGETS:
         raise SettingError(f"--budget: expected one of {BUDGETS}, found {budget!r}")
     row = settings[config.learners[0]]
-    steps = config.steps or (row["steps"] if budget == "paper" else row["cpu_steps"])
-    eval_every = config.eval_every or row["eval_every"]
-    eval_episodes = config.eval_episodes or settings["run"]["eval_episodes"]
+    # 0 is a value the user typed, not "unset": it is refused below, never replaced
+    default_steps = row["steps"] if budget == "paper" else row["cpu_steps"]
+    steps = default_steps if config.steps is None else config.steps
+    eval_every = row["eval_every"] if config.eval_every is None else config.eval_every
+    eval_episodes = (
+        settings["run"]["eval_episodes"] if config.eval_episodes is None else config.eval_episodes
+    )
     if min(steps, eval_every, eval_episodes) < 1:
         raise SettingError("--steps, --eval-every, --eval-episodes: expected positive integers")
     if steps % eval_every:
