@@ -5,6 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+
+# the 2-D point task of test_learners: s' = s + 0.5 a, reward -|s'|
+from test_learners import HORIZON, rollout, step
 from test_merge import write_source, write_synthetic
 from torch import nn
 
@@ -13,24 +16,6 @@ from hipode_pipeline.data.transitions import Transitions
 from hipode_pipeline.learners import CQL, IQL, TD3BC, CQLConfig, IQLConfig, TD3BCConfig
 from hipode_pipeline.replay import MixedReplay
 from hipode_pipeline.train import run_training
-
-HORIZON = 15
-
-
-def step(states: np.ndarray, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A 2-D point that must reach the origin: s' = s + 0.5 a, reward -|s'|."""
-    next_states = np.clip(states + 0.5 * actions, -3, 3)
-    return next_states, -np.linalg.norm(next_states, axis=1)
-
-
-def rollout(policy, episodes: int = 64, seed: int = 123) -> float:
-    """Mean return of `policy` ((k, 2) -> (k, 2)) over fixed starts."""
-    states = np.random.default_rng(seed).uniform(-2, 2, (episodes, 2)).astype(np.float32)
-    total = np.zeros(episodes)
-    for _ in range(HORIZON):
-        states, rewards = step(states, np.clip(policy(states), -1, 1))
-        total += rewards
-    return float(total.mean())
 
 
 def good_controller(states: np.ndarray) -> np.ndarray:
