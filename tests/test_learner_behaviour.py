@@ -7,7 +7,7 @@ import pytest
 import torch
 
 # the 2-D point task of test_learners: s' = s + 0.5 a, reward -|s'|
-from test_learners import HORIZON, rollout, step
+from test_learners import point_task_dataset, rollout
 from test_merge import write_source, write_synthetic
 from torch import nn
 
@@ -26,24 +26,12 @@ def two_controller_dataset(episodes: int = 200, seed: int = 0) -> Transitions:
     """Each step the behaviour flips a coin between the good controller and its mirror image
     (+1.5 s, pushing away): the mean action is ~0 in every state, so cloning it goes nowhere,
     while the rewards say which half of the actions to keep."""
-    rng = np.random.default_rng(seed)
-    states = rng.uniform(-2, 2, (episodes, 2))
-    rows = []
-    for t in range(HORIZON):
+
+    def coin_flip(states, rng):
         gain = np.where(rng.random((episodes, 1)) < 0.5, -1.5, 1.5)
-        actions = np.clip(gain * states + rng.normal(0, 0.2, states.shape), -1, 1)
-        next_states, rewards = step(states, actions)
-        rows.append((states, actions, rewards, next_states, np.full(episodes, t == HORIZON - 1)))
-        states = next_states
-    stack = lambda i: np.concatenate([r[i] for r in rows]).astype(np.float32)  # noqa: E731
-    return Transitions(
-        stack(0),
-        stack(1),
-        stack(2),
-        stack(3),
-        np.zeros(episodes * HORIZON, bool),
-        stack(4).astype(bool),
-    )
+        return gain * states + rng.normal(0, 0.2, states.shape)
+
+    return point_task_dataset(coin_flip, episodes, seed)
 
 
 def behaviour_cloning_return(data: Transitions) -> float:

@@ -29,13 +29,13 @@ def rollout(policy, episodes: int = 64, seed: int = 123) -> float:
     return float(total.mean())
 
 
-def scripted_dataset(episodes: int = 200, seed: int = 0) -> Transitions:
-    """A noisy controller's episodes (noise large enough that the data is far from optimal)."""
+def point_task_dataset(behaviour, episodes: int, seed: int) -> Transitions:
+    """Episodes of the point task under `behaviour(states, rng)` -> raw actions (clipped)."""
     rng = np.random.default_rng(seed)
     states = rng.uniform(-2, 2, (episodes, 2))
     rows = []
     for t in range(HORIZON):
-        actions = np.clip(-1.5 * states + rng.normal(0, 0.6, states.shape), -1, 1)
+        actions = np.clip(behaviour(states, rng), -1, 1)
         next_states, rewards = step(states, actions)
         rows.append((states, actions, rewards, next_states, np.full(episodes, t == HORIZON - 1)))
         states = next_states
@@ -47,6 +47,13 @@ def scripted_dataset(episodes: int = 200, seed: int = 0) -> Transitions:
         stack(3),
         np.zeros(episodes * HORIZON, bool),
         stack(4).astype(bool),
+    )
+
+
+def scripted_dataset(episodes: int = 200, seed: int = 0) -> Transitions:
+    """A noisy controller's episodes (noise large enough that the data is far from optimal)."""
+    return point_task_dataset(
+        lambda states, rng: -1.5 * states + rng.normal(0, 0.6, states.shape), episodes, seed
     )
 
 
