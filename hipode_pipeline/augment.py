@@ -246,7 +246,8 @@ def run_augment(
                 source_tag=None if own_source else info.sha256[:8],
             )
         )
-        check_output_file(out, "--out" if out_given else "the default artifact path")
+        if not out_given:
+            check_output_file(out, "the default artifact path")
         request = ArtifactRequest(
             task.name, info.sha256, asdict(generation), generator_config.to_dict(), seed
         )

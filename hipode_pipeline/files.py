@@ -202,20 +202,28 @@ def _say_waiting(fd: int, path: Path) -> None:
     console.err.print(console.plain(f"waiting for another `{command}` writing {path} (pid {pid})…"))
 
 
-def path_kind(path: Path) -> str:
-    """What is at `path`, in words, for an error message."""
+def path_kind(path: str | Path) -> str:
+    """What is at `path`, in words, for an error message. Only stat is called: a FIFO is never
+    opened, so it cannot block."""
     try:
-        mode = path.lstat().st_mode
-    except OSError:
-        return "nothing"
-    if stat.S_ISLNK(mode) and not path.exists():
-        return "a broken symbolic link"
-    mode = path.stat().st_mode
-    if stat.S_ISDIR(mode):
-        return "a directory"
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        return "a symlink to nothing (dangling)" if os.path.islink(path) else "nothing"
+    except OSError as error:
+        if error.errno == errno.ELOOP:
+            return "a symlink loop"
+        if error.errno == errno.ENOTDIR:
+            return "nothing (a parent is not a folder)"
+        return f"unreadable ({error.strerror})"
     if stat.S_ISREG(mode):
         return "a file"
-    return "a FIFO" if stat.S_ISFIFO(mode) else "a special file (socket or device)"
+    if stat.S_ISDIR(mode):
+        return "a directory"
+    if stat.S_ISFIFO(mode):
+        return "a FIFO (named pipe)"
+    if stat.S_ISSOCK(mode):
+        return "a socket"
+    return "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "a special file"
 
 
 def check_output_file(path: str | Path, option: str | None = None) -> Path:
@@ -224,7 +232,10 @@ def check_output_file(path: str | Path, option: str | None = None) -> Path:
     `option` (e.g. "--out") names where the path came from in the error message."""
     path = Path(path)
     label = f"{option} {path}" if option else str(path)
-    if os.path.lexists(path) and path_kind(path) not in ("a file", "a broken symbolic link"):
+    if os.path.lexists(path) and path_kind(path) not in (
+        "a file",
+        "a symlink to nothing (dangling)",
+    ):
         raise SettingError(f"{label}: expected a file path, found {path_kind(path)}")
     _check_parents(path, label)
     return path

@@ -183,15 +183,18 @@ def finished_scores(run_dir: Path, steps: int, expected: dict[str, Any]) -> dict
     return scores
 
 
-def check_run_dir(run_dir: Path, config: dict[str, Any], steps: int, force: bool) -> str:
-    """What to do with `run_dir`, without touching it: "fresh", "resume", "finished" or
-    "replace" (--force over an existing folder). A folder of another experiment is refused."""
+def check_run_dir(
+    run_dir: Path, config: dict[str, Any], steps: int, force: bool
+) -> tuple[str, dict[str, Any] | None]:
+    """What to do with `run_dir`, without touching it: "fresh", "resume", "finished" (with its
+    scores) or "replace" (--force over an existing folder). A folder of another experiment is
+    refused."""
     if run_dir.exists() and not run_dir.is_dir():
         raise OverwriteError(f"{run_dir}: expected a run folder, found a file; remove it first")
     if force:
-        return "replace" if run_dir.exists() else "fresh"
+        return ("replace" if run_dir.exists() else "fresh"), None
     if not (run_dir / "config.json").is_file():
-        return "fresh"
+        return "fresh", None
     # the seed and the evaluation schedule must match too: a resumed or finished run keeps its own
     checked = (*IDENTITY_KEYS, "seed", "eval_every", "eval_episodes")
     differing = differing_settings(run_dir, {key: config[key] for key in checked if key in config})
@@ -200,9 +203,8 @@ def check_run_dir(run_dir: Path, config: dict[str, Any], steps: int, force: bool
             f"{run_dir} holds a run with other settings ({', '.join(differing)} differ); "
             "pass --force to replace it, or --name / --out for another folder"
         )
-    if scores_if_finished(run_dir, steps) is not None:
-        return "finished"
-    return "resume"
+    scores = scores_if_finished(run_dir, steps)
+    return ("finished", scores) if scores is not None else ("resume", None)
 
 
 def open_run_dir(run_dir: Path, state: str) -> dict[str, Any] | None:

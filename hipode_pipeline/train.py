@@ -158,6 +158,40 @@ def batch_eta(
     )
 
 
+def builtin_learner_config(
+    settings: dict[str, Any],
+    learner: str,
+    task: Task,
+    steps: int,
+    overrides: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """A built-in learner's settings for `task`: its dataclass defaults, then stages/train.toml's
+    [<learner>.config] and [<learner>.tasks.<task>], the paper's learner alpha, then `overrides`."""
+    cls = learner_class(learner)
+    per_learner = settings.get(learner, {})
+    per_task = per_learner.get("tasks", {})
+    unknown = sorted(set(per_task) - set(all_tasks()))
+    if unknown:
+        raise SettingError(
+            f"stages/train.toml [{learner}.tasks]: expected task short names, found {unknown}"
+        )
+    values = {
+        **per_learner.get("config", {}),
+        **per_task.get(task.name, {}),
+        **(overrides or {}),
+    }
+    learner_alpha = task.augment_params(learner).learner_alpha
+    if learner_alpha is not None and learner in ("td3bc", "cql"):
+        values.setdefault("alpha" if learner == "td3bc" else "cql_alpha", float(learner_alpha))
+    if learner == "iql":
+        values.setdefault("max_steps", steps)
+    return cls.config_class.from_dict(
+        values,
+        origin=f"learner settings ({learner}.config / {learner}.tasks.{task.name} of "
+        "stages/train.toml, overrides)",
+    ).to_dict()
+
+
 def _positive(name: str, value: int, upper: int) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= upper:
         raise SettingError(f"{name}: expected an integer in [1, {upper:,}], found {value!r}")
@@ -243,37 +277,17 @@ def run_training(
 
     if family == "d3rlpy":
         # the paper's learner alpha, and IQL's reward normalization as our IQL runs this task
-        iql_task = settings.get("iql", {}).get("tasks", {}).get(task_obj.name, {})
-        iql_default = learner_class("iql").config_class().normalize_reward
+        iql = builtin_learner_config(settings, "iql", task_obj, steps)
         learner_config: dict[str, Any] = {
             "alpha": params.learner_alpha,
-            "normalize_reward": bool(iql_task.get("normalize_reward", iql_default)),
+            "normalize_reward": iql["normalize_reward"],
         }
         cls = None
     else:
         cls = learner_class(learner)
-        per_task = per_learner.get("tasks", {})
-        unknown = sorted(set(per_task) - set(all_tasks()))
-        if unknown:
-            raise SettingError(
-                f"stages/train.toml [{learner}.tasks]: expected task short names, found {unknown}"
-            )
-        overrides = {
-            **per_learner.get("config", {}),
-            **per_task.get(task_obj.name, {}),
-            **(learner_settings or {}),
-        }
-        if params.learner_alpha is not None and learner in ("td3bc", "cql"):
-            overrides.setdefault(
-                "alpha" if learner == "td3bc" else "cql_alpha", float(params.learner_alpha)
-            )
-        if learner == "iql":
-            overrides.setdefault("max_steps", steps)
-        learner_config = cls.config_class.from_dict(
-            overrides,
-            origin=f"learner settings ({learner}.config / {learner}.tasks.{task_obj.name} of "
-            "stages/train.toml, overrides)",
-        ).to_dict()
+        learner_config = builtin_learner_config(
+            settings, learner, task_obj, steps, learner_settings
+        )
 
     manifest = merged.artifact_manifest or {}
     config = {
@@ -317,9 +331,8 @@ def run_training(
         )
     # one writer per run folder: a second identical command waits, then finds it finished
     with output_lock(run_dir, command="hipode train"):
-        state = check_run_dir(run_dir, config, steps, force)
-        if state == "finished":
-            scores = json.loads((run_dir / "scores.json").read_text())
+        state, scores = check_run_dir(run_dir, config, steps, force)
+        if scores is not None:
             console.err.print(
                 f"{run_dir} already finished {scores.get('steps')} updates: its scores"
             )

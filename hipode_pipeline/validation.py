@@ -9,13 +9,11 @@ digest (`manifest_checksum`), which also covers the content checksum.
 
 from __future__ import annotations
 
-import errno
 import hashlib
 import json
 import math
 import os
 import re
-import stat
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -25,6 +23,7 @@ import numpy as np
 
 from hipode_pipeline.data.transitions import FIELDS
 from hipode_pipeline.errors import DataFormatError, DatasetNotFoundError
+from hipode_pipeline.files import path_kind
 
 SCHEMA_NAME = "hipode-synthetic"
 SCHEMA_VERSION = "1.1"
@@ -302,31 +301,15 @@ def claims_artifact(raw: object) -> bool:
 
 
 def path_problem(path: str | Path) -> str | None:
-    """What is at `path` when it is not a regular file (None when it is). Only stat is called:
-    a FIFO is never opened, so it cannot block."""
-    try:
-        mode = os.stat(path).st_mode
-    except FileNotFoundError:
-        if os.path.islink(path):
-            return "a symlink to nothing (dangling)"
-        return "nothing at that path"
-    except OSError as error:
-        if error.errno == errno.ELOOP:
-            return "a symlink loop"
-        if error.errno == errno.ENOTDIR:
-            return "nothing at that path (a parent is not a folder)"
-        return f"unreadable ({error.strerror})"
-    if stat.S_ISREG(mode):
+    """What is at `path` when it is not a regular file (None when it is), in words."""
+    kind = path_kind(path)
+    if kind == "a file":
         return None
-    if stat.S_ISDIR(mode):
-        return "a directory"
-    if stat.S_ISFIFO(mode):
-        return "a FIFO (named pipe), not a regular file"
-    if stat.S_ISSOCK(mode):
-        return "a socket, not a regular file"
-    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
-        return "a device, not a regular file"
-    return "not a regular file"
+    if kind.startswith("nothing"):
+        return kind.replace("nothing", "nothing at that path", 1)
+    if kind in ("a FIFO (named pipe)", "a socket", "a device", "a special file"):
+        return f"{kind}, not a regular file"
+    return kind
 
 
 def require_regular_file(path: str | Path, what: str = "artifact file") -> Path:
