@@ -458,7 +458,10 @@ def _train_loop(
         counts: dict[str, int] = {}
         while model.step < steps:
             for name, value in model.update(replay.sample(batch_size)).items():
-                sums[name] = sums[name] + value if name in sums else value.clone()
+                if name in sums:
+                    sums[name].add_(value)
+                else:
+                    sums[name] = value.clone()
                 counts[name] = counts.get(name, 0) + 1
             step, window_steps = model.step, window_steps + 1
             evaluate_now = step % eval_every == 0 or step == steps
