@@ -178,25 +178,17 @@ def test_a_diverged_generator_never_reaches_the_cache(tmp_path):
     assert not checkpoint.exists()
 
 
+def quick_augment(world, root: Path, out: Path):
+    """`hipode augment hopper-m-r --profile quick` on the world's hopper source."""
+    args = ["augment", "hopper-m-r", "--source", str(world["hopper"]), "--profile", "quick"]
+    return CliRunner().invoke(app, [*args, "--root", str(root), "--out", str(out)])
+
+
 def test_the_machine_refusing_a_path_is_one_line_not_a_traceback(world, tmp_path):
     root = tmp_path / "rootc"
     root.mkdir()
     (root / "cache").touch()  # a file where stage one needs its cache folder
-    result = CliRunner().invoke(
-        app,
-        [
-            "augment",
-            "hopper-m-r",
-            "--source",
-            str(world["hopper"]),
-            "--profile",
-            "quick",
-            "--root",
-            str(root),
-            "--out",
-            str(tmp_path / "a.hdf5"),
-        ],
-    )
+    result = quick_augment(world, root, tmp_path / "a.hdf5")
     assert result.exit_code == 2 and "Traceback" not in result.output
     assert "Not a directory" in result.stderr and str(root / "cache") in result.stderr
 
@@ -205,21 +197,7 @@ def test_a_lock_that_cannot_be_made_is_refused_not_waited_for(world, tmp_path):
     folder = tmp_path / "lk"
     folder.mkdir()
     (folder / ".y.hdf5.lock").symlink_to(tmp_path / "nowhere" / "file")
-    result = CliRunner().invoke(
-        app,
-        [
-            "augment",
-            "hopper-m-r",
-            "--source",
-            str(world["hopper"]),
-            "--profile",
-            "quick",
-            "--root",
-            str(world["root"]),
-            "--out",
-            str(folder / "y.hdf5"),
-        ],
-    )
+    result = quick_augment(world, world["root"], folder / "y.hdf5")
     assert result.exit_code == 2 and "lock" in result.stderr
 
 
