@@ -7,6 +7,8 @@ STAMP := $(VENV)/.installed
 TASK ?= hopper-m-r
 # the learner whose table row stage one builds and stage two trains: td3bc | iql | cql
 LEARNER ?= td3bc
+# training seeds of `make train`, e.g. 0-4 (one process, one stacked model); empty: seed 0
+SEEDS ?=
 ARGS ?=
 # Torch's worker threads spin on a busy 2-core machine; passive waiting keeps them polite.
 export OMP_WAIT_POLICY ?= PASSIVE
@@ -32,7 +34,7 @@ augment: $(STAMP)
 	$(BIN)/hipode augment $(TASK) --learner $(LEARNER) $(ARGS)
 
 train: $(STAMP)
-	$(BIN)/hipode train $(TASK) --learner $(LEARNER) $(ARGS)
+	$(BIN)/hipode train $(TASK) --learner $(LEARNER) $(if $(SEEDS),--seeds $(SEEDS)) $(ARGS)
 
 datasets: $(STAMP)
 	$(BIN)/hipode datasets list $(ARGS)

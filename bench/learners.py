@@ -1,15 +1,17 @@
-"""Stage-two learners: updates/s of our TD3+BC against d3rlpy 2.8.1's TD3PlusBC on the same
-data, batch size and thread count, and (optionally) TD3+BC at η = 0 on the locally collected
-hopper-medium dataset at a stated, scaled budget against the behaviour policy's score.
+"""Stage-two learners: seed-updates/s of our TD3+BC, IQL and CQL (one seed, and K seeds
+stacked in one process, fp32 and bf16) beside d3rlpy 2.8.1's TD3PlusBC, IQL and CQL on the same
+data, batch size and thread count, against the matmul roofs measured in the same run; and
+(optionally) TD3+BC at η = 0 on a locally collected dataset at a stated budget.
 
     OMP_WAIT_POLICY=PASSIVE .venv/bin/python bench/learners.py \
-        --d3rlpy-python .venv-d3rlpy/bin/python \
-        [--quality-steps 30000 --quality-precision fp32 bf16]
+        --d3rlpy-python .venv-d3rlpy/bin/python [--seeds 5 --rounds 3] \
+        [--no-speed --quality-steps 30000 --quality-precision fp32 bf16]
 
 d3rlpy pins gymnasium 1.0.0, so it lives in its own virtual environment and is measured in a
 subprocess of that interpreter (which imports this project too, `pip install --no-deps -e .`).
 Each variant runs in rounds that alternate with the others, so a load change on this shared
-machine hits all of them; the report gives the median round and the load average.
+machine hits all of them; the report gives the median round, CPU-time and wall-time rates,
+and the load average.
 """
 
 from __future__ import annotations
@@ -56,34 +58,69 @@ def bench_data(dataset: str | None, n: int, seed: int):
     return t, None, f"random Hopper-shaped rows ({n})"
 
 
-def our_learners(transitions, variants: dict[str, dict], batch: int) -> dict:
-    """One warmed-up TD3+BC (and its sampler) per variant."""
-    from hipode_pipeline.learners.td3_bc import TD3BC, TD3BCConfig
+LEARNER_NAMES = ("td3bc", "iql", "cql")
+# updates per round (per stacked group), sized so every variant's round lasts about a second
+ROUND_UPDATES = {"td3bc": 100, "iql": 60, "cql": 4}
+D3RLPY_ALGOS = {"td3bc": "TD3PlusBC", "iql": "IQL", "cql": "CQL"}
+
+
+def our_learner(name: str, transitions, seeds: int, bf16: bool, batch: int):
+    """One warmed-up stacked learner of `seeds` seeds and its sampler."""
+    from hipode_pipeline.learners import learner_class
     from hipode_pipeline.replay import MixedReplay
 
-    runs = {}
-    for name, settings in variants.items():
-        config = TD3BCConfig(**settings)
-        learner = TD3BC(transitions.obs_dim, transitions.act_dim, config, device="cpu", seed=0)
-        learner.fit_statistics(transitions)
-        replay = MixedReplay(transitions, device="cpu", seed=0)
-        for _ in range(30):  # warm-up (and, with compile, the compilation)
+    cls = learner_class(name)
+    config = cls.config_class(bf16=bf16)
+    ids = list(range(seeds))
+    learner = cls(transitions.obs_dim, transitions.act_dim, config, device="cpu", seed=ids)
+    learner.fit_statistics(transitions)
+    replay = MixedReplay(transitions, device="cpu", seed=ids)
+    for _ in range(3):
+        learner.update(replay.sample(batch))
+    return learner, replay
+
+
+def update_flops(learner, replay, batch: int, updates: int = 2) -> float:
+    """Matmul FLOPs of one update of one seed (forward and backward), counted by torch over
+    `updates` updates (TD3+BC's actor moves every second one)."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    counter = FlopCounterMode(display=False)
+    with counter:
+        for _ in range(updates):
             learner.update(replay.sample(batch))
-        runs[name] = (learner, replay)
-    return runs
+    return counter.get_total_flops() / updates / learner.n_seeds
 
 
-def time_ours(learner, replay, updates: int, batch: int) -> float:
-    """Updates/s, sampling included."""
-    start = time.perf_counter()
+def time_ours(learner, replay, updates: int, batch: int) -> dict[str, float]:
+    """Seed-updates per CPU second and per wall second (sampling included)."""
+    cpu, wall = time.process_time(), time.perf_counter()
     for _ in range(updates):
         learner.update(replay.sample(batch))
-    return updates / (time.perf_counter() - start)
+    cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
+    seed_updates = updates * learner.n_seeds
+    return {"cpu": seed_updates / cpu, "wall": seed_updates / wall}
 
 
-def d3rlpy_worker(data_path: str, threads: int, updates: int, batch: int) -> None:
-    """Runs in d3rlpy's interpreter: builds TD3PlusBC on the data, then for every line read on
-    stdin runs `updates` updates and answers one JSON line (updates/s with and without sampling)."""
+def matmul_roofs(threads: int) -> dict[str, float]:
+    """GFLOP/s of a 256-wide matmul (1280 x 256 @ 256 x 256) in fp32 and bf16, as measured now."""
+    torch.set_num_threads(threads)
+    roofs = {}
+    for name, dtype in (("fp32", torch.float32), ("bf16", torch.bfloat16)):
+        a, b = torch.randn(1280, 256, dtype=dtype), torch.randn(256, 256, dtype=dtype)
+        for _ in range(20):
+            a @ b
+        start, n = time.perf_counter(), 400
+        for _ in range(n):
+            a @ b
+        roofs[name] = 2 * 1280 * 256 * 256 * n / (time.perf_counter() - start) / 1e9
+    return roofs
+
+
+def d3rlpy_worker(data_path: str, algo_name: str, threads: int, updates: int, batch: int):
+    """Runs in d3rlpy's interpreter: builds `algo_name` on the data (CORL's network sizes: CQL
+    with 3 hidden layers of 256), then for every line read on stdin runs `updates` updates and
+    answers one JSON line (updates per CPU and per wall second, with and without sampling)."""
     import d3rlpy
 
     from hipode_pipeline.data.transitions import Transitions
@@ -96,34 +133,44 @@ def d3rlpy_worker(data_path: str, threads: int, updates: int, batch: int) -> Non
     scaler = d3rlpy.preprocessing.StandardObservationScaler(
         mean=transitions.observations.mean(0), std=transitions.observations.std(0)
     )
-    config = d3rlpy.algos.TD3PlusBCConfig(batch_size=batch, observation_scaler=scaler)
+    extra = {}
+    if algo_name == "CQL":
+        encoder = d3rlpy.models.encoders.VectorEncoderFactory([256, 256, 256])
+        extra = {"actor_encoder_factory": encoder, "critic_encoder_factory": encoder}
+    config = getattr(d3rlpy.algos, f"{algo_name}Config")(
+        batch_size=batch, observation_scaler=scaler, **extra
+    )
     algo = config.create(device="cpu:0")
     real, buffer = build_d3rlpy_buffer(transitions, None, 0.0)
     algo.build_with_dataset(real)
-    for _ in range(10):
+    for _ in range(3):
         algo.update(buffer.sample_transition_batch(batch))
     print(json.dumps({"ready": d3rlpy.__version__}), flush=True)
     for _ in sys.stdin:
-        sample_seconds = 0.0
-        start = time.perf_counter()
+        sample_cpu = sample_wall = 0.0
+        cpu, wall = time.process_time(), time.perf_counter()
         for _ in range(updates):
-            t0 = time.perf_counter()
+            c0, w0 = time.process_time(), time.perf_counter()
             minibatch = buffer.sample_transition_batch(batch)
-            sample_seconds += time.perf_counter() - t0
+            sample_cpu += time.process_time() - c0
+            sample_wall += time.perf_counter() - w0
             algo.update(minibatch)
-        total = time.perf_counter() - start
+        cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
         answer = {
-            "with_sampling": updates / total,
-            "update_only": updates / (total - sample_seconds),
+            "update_only": {
+                "cpu": updates / (cpu - sample_cpu),
+                "wall": updates / (wall - sample_wall),
+            },
+            "with_sampling": {"cpu": updates / cpu, "wall": updates / wall},
         }
         print(json.dumps(answer), flush=True)
 
 
-def start_d3rlpy(python: str, data_path: Path, threads: int, updates: int, batch: int):
+def start_d3rlpy(python: str, data_path: Path, algo: str, threads: int, updates: int, batch: int):
     """The d3rlpy worker process, ready to take rounds; None (and why, on stderr) if it fails."""
-    command = [python, __file__, "--worker", str(data_path), "--threads", str(threads)]
-    command += ["--updates", str(updates), "--batch-size", str(batch)]
-    env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE"}
+    command = [python, __file__, "--worker", str(data_path), "--worker-algo", algo]
+    command += ["--threads", str(threads), "--updates", str(updates), "--batch-size", str(batch)]
+    env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": str(threads)}
     try:
         worker = subprocess.Popen(
             command, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env
@@ -222,11 +269,12 @@ def main() -> None:
     parser.add_argument(
         "--d3rlpy-python", default=".venv-d3rlpy/bin/python", help="interpreter with d3rlpy 2.8.1"
     )
-    parser.add_argument("--threads", type=int, nargs="+", default=[1, 2])
-    parser.add_argument("--updates", type=int, default=200, help="updates per round")
+    parser.add_argument("--threads", type=int, nargs="+", default=[1])
+    parser.add_argument("--updates", type=int, default=200, help=argparse.SUPPRESS)
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--batch-size", type=int, default=256)
-    parser.add_argument("--compile", action="store_true", help="also measure torch.compile")
+    parser.add_argument("--seeds", type=int, default=5, help="K seeds stacked (besides K = 1)")
+    parser.add_argument("--learners", nargs="+", default=list(LEARNER_NAMES), choices=LEARNER_NAMES)
     parser.add_argument("--no-speed", action="store_true", help="skip the speed section")
     parser.add_argument("--quality-steps", type=int, default=0, help="TD3+BC eta=0 run (0: skip)")
     parser.add_argument(
@@ -235,9 +283,10 @@ def main() -> None:
     parser.add_argument("--quality-threads", type=int, default=1)
     parser.add_argument("--episodes", type=int, default=10)
     parser.add_argument("--worker", help=argparse.SUPPRESS)
+    parser.add_argument("--worker-algo", default="TD3PlusBC", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
-        d3rlpy_worker(args.worker, args.threads[0], args.updates, args.batch_size)
+        d3rlpy_worker(args.worker, args.worker_algo, args.threads[0], args.updates, args.batch_size)
         return
 
     cpu = platform.processor() or platform.machine()
@@ -275,41 +324,141 @@ def main() -> None:
 
 
 def speed_section(args) -> dict:
+    """Every learner at K = 1 and K = --seeds, fp32 and bf16, beside d3rlpy's, interleaved."""
     transitions, _, data_text = bench_data(args.dataset, 100_000, seed=0)
-    variants = {"ours fp32": {"bf16": False}, "ours bf16 autocast": {"bf16": True}}
-    if args.compile:
-        variants["ours fp32 compiled"] = {"bf16": False, "compile": True}
-    section: dict = {"data": data_text, "batch_size": args.batch_size, "threads": {}}
+    threads = args.threads[0]
+    torch.set_num_threads(threads)
+    section: dict = {
+        "data": data_text,
+        "batch_size": args.batch_size,
+        "threads": threads,
+        "seeds": args.seeds,
+        "roofs_gflops": matmul_roofs(threads),
+        "learners": {},
+    }
+    ours, flops = {}, {}
+    for name in args.learners:
+        for k in sorted({1, args.seeds}):
+            for precision in ("fp32", "bf16"):
+                print(f"warming up {name} K={k} {precision}", file=sys.stderr, flush=True)
+                learner, replay = our_learner(
+                    name, transitions, k, precision == "bf16", args.batch_size
+                )
+                ours[(name, k, precision)] = (learner, replay)
+        flops[name] = update_flops(*ours[(name, 1, "fp32")], args.batch_size)
     with tempfile.TemporaryDirectory() as folder:
         data_path = Path(folder) / "data.npz"
         np.savez(data_path, **transitions.arrays())
-        for threads in args.threads:
-            torch.set_num_threads(threads)
-            print(f"threads={threads}: warming up ...", file=sys.stderr, flush=True)
-            ours = our_learners(transitions, variants, args.batch_size)
-            d3_updates = max(args.updates // 4, 10)  # d3rlpy is slower: keep its rounds short
+        workers, version = {}, None
+        for name in args.learners:
             worker, version = start_d3rlpy(
-                args.d3rlpy_python, data_path, threads, d3_updates, args.batch_size
+                args.d3rlpy_python,
+                data_path,
+                D3RLPY_ALGOS[name],
+                threads,
+                max(ROUND_UPDATES[name] // 4, 2),
+                args.batch_size,
             )
-            rates: dict[str, list[float]] = {name: [] for name in variants}
-            theirs = f"d3rlpy {version} TD3PlusBC"
-            for round_index in range(args.rounds):
-                print(f"threads={threads}: round {round_index + 1}", file=sys.stderr, flush=True)
-                for name, (learner, replay) in ours.items():
-                    rates[name].append(time_ours(learner, replay, args.updates, args.batch_size))
-                if worker is not None:
-                    answer = d3rlpy_round(worker)
-                    rates.setdefault(f"{theirs} (sampling included)", []).append(
-                        answer["with_sampling"]
-                    )
-                    rates.setdefault(f"{theirs} (update only)", []).append(answer["update_only"])
             if worker is not None:
-                worker.stdin.close()
-                worker.wait()
-            section["threads"][str(threads)] = {
-                name: {"rounds": values, "median": median(values)} for name, values in rates.items()
-            }
+                workers[name] = worker
+        rates: dict[str, dict[str, list[dict]]] = {name: {} for name in args.learners}
+        for round_index in range(args.rounds):
+            print(f"round {round_index + 1}/{args.rounds}", file=sys.stderr, flush=True)
+            for name in args.learners:
+                for (learner_name, k, precision), (learner, replay) in ours.items():
+                    if learner_name != name:
+                        continue
+                    updates = max(ROUND_UPDATES[name] // k, 2)
+                    rates[name].setdefault(f"ours K={k} {precision}", []).append(
+                        time_ours(learner, replay, updates, args.batch_size)
+                    )
+                if name in workers:
+                    answer = d3rlpy_round(workers[name])
+                    label = f"d3rlpy {version} {D3RLPY_ALGOS[name]}"
+                    for kind in ("update_only", "with_sampling"):
+                        rates[name].setdefault(f"{label} ({kind.replace('_', ' ')})", []).append(
+                            answer[kind]
+                        )
+        for worker in workers.values():
+            worker.stdin.close()
+            worker.wait()
+    for name in args.learners:
+        section["learners"][name] = {
+            "update_gflop_per_seed": flops[name] / 1e9,
+            "variants": {
+                variant: {
+                    "rounds": values,
+                    "cpu_median": median([v["cpu"] for v in values]),
+                    "wall_median": median([v["wall"] for v in values]),
+                }
+                for variant, values in rates[name].items()
+            },
+        }
     return section
+
+
+# the issue's speed targets: our K-seed rate over d3rlpy's update-only rate, per precision
+TARGETS = {
+    ("td3bc", "bf16"): 4.0,
+    ("td3bc", "fp32"): 1.5,
+    ("iql", "fp32"): 3.0,
+    ("cql", "fp32"): 1.5,
+}
+
+
+def speed_markdown(speed: dict) -> list[str]:
+    roofs = speed["roofs_gflops"]
+    lines = [
+        "## Updates/s: ours (K seeds stacked in one process) beside d3rlpy 2.8.1, same data",
+        "",
+        f"Command: `{speed['command']}` (OMP_WAIT_POLICY={speed['omp_wait_policy']}); "
+        f"load average (1, 5, 15 min) {speed['load_before']} before, "
+        f"{speed['load_after']} after. Data: {speed['data']}; batch size "
+        f"{speed['batch_size']}; {speed['threads']} torch thread per process.",
+        "",
+        "Rates are seed-updates per second (K seeds x updates / time; K = 1 is a plain run), "
+        "sampling included for ours; d3rlpy runs one seed per process, in its own interpreter, "
+        "in rounds alternating with ours; medians over the rounds. CPU-time rates count the "
+        "process's own CPU seconds, so they hold up under load better than wall-time rates. "
+        f"Matmul roofs measured in this run (1280x256 @ 256x256): fp32 {roofs['fp32']:.0f} "
+        f"GFLOP/s, bf16 {roofs['bf16']:.0f} GFLOP/s; each row's GFLOP/s is its CPU rate times "
+        "the matmul FLOPs of one seed's update (counted by torch's FlopCounterMode).",
+        "",
+    ]
+    for name, entry in speed["learners"].items():
+        variants = entry["variants"]
+        base_name = next((v for v in variants if v.endswith("(update only)")), None)
+        base = variants.get(base_name)
+        lines += [
+            f"### {name} ({entry['update_gflop_per_seed']:.2f} GFLOP per seed-update)",
+            "",
+            "| variant | per CPU-s | per wall-s | ÷ d3rlpy update (CPU) | ÷ (wall) | GFLOP/s "
+            "| of roof |",
+            "| --- | --- | --- | --- | --- | --- | --- |",
+        ]
+        for variant, values in variants.items():
+            ratio_cpu = ratio_wall = ""
+            if base and variant.startswith("ours"):
+                ratio_cpu = f"{values['cpu_median'] / base['cpu_median']:.2f}×"
+                ratio_wall = f"{values['wall_median'] / base['wall_median']:.2f}×"
+            precision = "bf16" if variant.endswith("bf16") else "fp32"
+            gflops = values["cpu_median"] * entry["update_gflop_per_seed"]
+            lines.append(
+                f"| {variant} | {values['cpu_median']:.1f} | {values['wall_median']:.1f} | "
+                f"{ratio_cpu} | {ratio_wall} | {gflops:.0f} | {gflops / roofs[precision]:.0%} |"
+            )
+        lines.append("")
+        for (learner, precision), target in TARGETS.items():
+            ours = variants.get(f"ours K={speed['seeds']} {precision}")
+            if learner != name or not (ours and base):
+                continue
+            ratio = ours["cpu_median"] / base["cpu_median"]
+            lines.append(
+                f"- target K={speed['seeds']} {precision} ≥ {target:g}× d3rlpy's update: "
+                f"{ratio:.2f}× ({'met' if ratio >= target else 'not met'})"
+            )
+        lines.append("")
+    return lines
 
 
 def load_previous() -> dict:
@@ -329,40 +478,14 @@ def write_report(report: dict) -> None:
         f"Machine: {report['machine']}, shared with other jobs while measured: "
         "the load averages below say how busy it was (2 cores, so a load above 2 means waiting).",
         "",
-        "TD3BCConfig.bf16 defaults to bf16 autocast where bf16 matmuls are native (AVX512-BF16 "
-        "or AMX CPUs, CUDA) because of these runs: the speed tables, and the fp32 and bf16 runs "
-        "on the same data below, which score alike.",
+        "Precision: every learner defaults to fp32 (stages/train.toml [<learner>.precision]); "
+        "bf16 hidden matmuls (heads, targets and losses in fp32) are an option until a parity "
+        "measurement makes them a default (bench/results/learner_precision.md).",
         "",
     ]
     speed = report.get("speed")
-    if speed:
-        lines += [
-            "## Updates/s: our TD3+BC and d3rlpy's TD3PlusBC, same data, batch and threads",
-            "",
-            f"Command: `{speed['command']}` (OMP_WAIT_POLICY={speed['omp_wait_policy']}); "
-            f"load average (1, 5, 15 min) {speed['load_before']} before, "
-            f"{speed['load_after']} after.",
-            f"Data: {speed['data']}; batch size {speed['batch_size']}. Each variant runs in rounds "
-            "alternating with the others (d3rlpy in its own interpreter between ours); the table "
-            "gives the median round, sampling included unless marked.",
-            "",
-        ]
-        for threads, entry in speed["threads"].items():
-            lines += [
-                f"### {threads} torch thread(s)",
-                "",
-                "| learner | updates/s (median) | rounds |",
-                "| --- | --- | --- |",
-            ]
-            for name, values in entry.items():
-                rounds = ", ".join(f"{r:.1f}" for r in values["rounds"])
-                lines.append(f"| {name} | {values['median']:.1f} | {rounds} |")
-            lines.append("")
-            for base_name in [n for n in entry if n.startswith("d3rlpy")]:
-                for name in [n for n in entry if n.startswith("ours")]:
-                    ratio = entry[name]["median"] / entry[base_name]["median"]
-                    lines.append(f"- {name} / {base_name}: {ratio:.2f}×")
-            lines.append("")
+    if speed and "learners" in speed:
+        lines += speed_markdown(speed)
     quality = report.get("quality_runs") or {}
     if quality:
         lines += ["## TD3+BC at η = 0 on the locally collected dataset, scaled budget", ""]

@@ -1,10 +1,10 @@
 """Policy evaluation: deterministic rollouts in the task's gymnasium env with fixed seeds,
-several episodes stepped together so the policy runs as one batch, raw returns and
-D4RL-normalized scores (reference returns from the data's own metadata)."""
+all episodes of all training seeds stepped together so the policies run as one batch, raw
+returns and D4RL-normalized scores (reference returns from the data's own metadata)."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -16,6 +16,7 @@ from hipode_pipeline.tasks import normalized_score
 __all__ = [
     "EvalResult",
     "check_data_fits_env",
+    "evaluate_policies",
     "evaluate_policy",
     "evaluation_seeds",
     "normalized_score",
@@ -81,42 +82,75 @@ def evaluate_policy(
     ref_max_score: float | None = None,
     max_episode_steps: int | None = None,
 ) -> EvalResult:
-    """Run `episodes` deterministic episodes side by side; `policy` maps (k, ds) -> (k, da)."""
-    seeds = evaluation_seeds(seed, episodes)
-    envs = [make_env_safely(env_id) for _ in range(episodes)]
-    low, high = envs[0].action_space.low, envs[0].action_space.high
+    """Run `episodes` deterministic episodes side by side; `policy` maps (n, ds) -> (n, da)."""
+    return evaluate_policies(
+        lambda observations: np.asarray(policy(observations[0]))[None],
+        env_id,
+        episodes=episodes,
+        seeds=[seed],
+        ref_min_score=ref_min_score,
+        ref_max_score=ref_max_score,
+        max_episode_steps=max_episode_steps,
+    )[0]
+
+
+def evaluate_policies(
+    policies: Callable[[np.ndarray], np.ndarray],
+    env_id: str,
+    *,
+    episodes: int,
+    seeds: Sequence[int],
+    ref_min_score: float | None = None,
+    ref_max_score: float | None = None,
+    max_episode_steps: int | None = None,
+) -> list[EvalResult]:
+    """K policies (one per training seed) at once, policy k on the evaluation starts of seed k
+    (those a run of that seed alone meets); `policies` maps (K, n, ds) -> (K, n, da)."""
+    starts = [evaluation_seeds(seed, episodes) for seed in seeds]
+    k = len(starts)
+    envs = [[make_env_safely(env_id) for _ in range(episodes)] for _ in range(k)]
+    low, high = envs[0][0].action_space.low, envs[0][0].action_space.high
     try:
         observations = np.stack(
-            [env.reset(seed=s)[0] for env, s in zip(envs, seeds, strict=True)]
+            [
+                [env.reset(seed=s)[0] for env, s in zip(row, row_starts, strict=True)]
+                for row, row_starts in zip(envs, starts, strict=True)
+            ]
         ).astype(np.float32)
-        returns = np.zeros(episodes)
-        lengths = np.zeros(episodes, dtype=np.int64)
-        active = np.ones(episodes, dtype=bool)
+        returns = np.zeros((k, episodes))
+        lengths = np.zeros((k, episodes), dtype=np.int64)
+        active = np.ones((k, episodes), dtype=bool)
         while active.any():
-            running = np.flatnonzero(active)
             # the env charges control cost on the action as given: keep it inside the limits
-            actions = np.clip(np.asarray(policy(observations[running])), low, high)
-            for action, i in zip(actions, running, strict=True):
-                obs, reward, terminated, truncated, _ = envs[i].step(action)
-                observations[i] = obs
-                returns[i] += float(reward)
-                lengths[i] += 1
+            actions = np.clip(np.asarray(policies(observations)), low, high)
+            for g, i in zip(*np.nonzero(active), strict=True):
+                obs, reward, terminated, truncated, _ = envs[g][i].step(actions[g, i])
+                observations[g, i] = obs
+                returns[g, i] += float(reward)
+                lengths[g, i] += 1
                 if (
                     terminated
                     or truncated
-                    or (max_episode_steps is not None and lengths[i] >= max_episode_steps)
+                    or (max_episode_steps is not None and lengths[g, i] >= max_episode_steps)
                 ):
-                    active[i] = False
+                    active[g, i] = False
     finally:
-        for env in envs:
-            env.close()
+        for row in envs:
+            for env in row:
+                env.close()
+    return [
+        _result(returns[g], lengths[g], starts[g], ref_min_score, ref_max_score) for g in range(k)
+    ]
+
+
+def _result(returns, lengths, seeds, ref_min_score, ref_max_score) -> EvalResult:
     scores = None
     if ref_min_score is not None and ref_max_score is not None:
         scores = normalized_score(returns, ref_min_score, ref_max_score)
     return EvalResult(
         returns=returns.tolist(),
         lengths=lengths.tolist(),
-        seeds=seeds,
+        seeds=list(seeds),
         return_mean=float(returns.mean()),
         return_std=float(returns.std()),
         score_mean=None if scores is None else float(scores.mean()),

@@ -1,9 +1,11 @@
 """Real and synthetic transitions in one preallocated tensor on the device, sampled as η-mixed
 batches (METHOD.md, appendix B.4: round(η·B) synthetic and B − round(η·B) real rows per batch)
-or uniformly over the union. One index draw and one gather per batch."""
+or uniformly over the union, for K training seeds at once: each seed draws its rows from its
+own random stream, and one gather serves them all."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Literal, NamedTuple
 
 import numpy as np
@@ -14,13 +16,14 @@ from hipode_pipeline.errors import HipodeError
 
 
 class Batch(NamedTuple):
-    """One minibatch of raw (un-normalized) transitions on the learner's device."""
+    """One minibatch of raw (un-normalized) transitions on the learner's device, one per seed:
+    (K, B, ...) from the replay; a one-seed learner also takes a plain (B, ...) batch."""
 
-    observations: torch.Tensor  # (B, ds)
-    actions: torch.Tensor  # (B, da)
-    rewards: torch.Tensor  # (B,)
-    next_observations: torch.Tensor  # (B, ds)
-    dones: torch.Tensor  # (B,) 1.0 where the MDP ended (terminal, not timeout)
+    observations: torch.Tensor  # (K, B, ds)
+    actions: torch.Tensor  # (K, B, da)
+    rewards: torch.Tensor  # (K, B)
+    next_observations: torch.Tensor  # (K, B, ds)
+    dones: torch.Tensor  # (K, B) 1.0 where the MDP ended (terminal, not timeout)
 
 
 Mixing = Literal["mixed", "union"]
@@ -48,7 +51,8 @@ class MixedReplay:
     Rows 0..n_real-1 of the packed tensor are real, the rest synthetic. With mixing "mixed"
     each batch holds exactly round(eta·B) synthetic rows (the first ones of the batch are real);
     with "union" rows are drawn uniformly over both. eta = 0 (or no synthetic data) never
-    copies or reads a synthetic row.
+    copies or reads a synthetic row. `seed` is one training seed or a list of them: batches
+    then come as (K, B, ...), seed k's rows drawn from a generator seeded with seed k alone.
     """
 
     def __init__(
@@ -59,7 +63,7 @@ class MixedReplay:
         eta: float = 0.0,
         mixing: Mixing = "mixed",
         device: torch.device | str = "cpu",
-        seed: int = 0,
+        seed: int | Sequence[int] = 0,
     ):
         if mixing not in MIXING_MODES:
             raise HipodeError(f"mixing: expected one of {MIXING_MODES}, found {mixing!r}")
@@ -90,8 +94,8 @@ class MixedReplay:
         ds, da = self.obs_dim, self.act_dim
         # column boundaries of s | a | r | s' | done in a packed row
         self._splits = [ds, da, 1, ds, 1]
-        self.generator = torch.Generator(device=self.device)
-        self.generator.manual_seed(seed)
+        seeds = [seed] if isinstance(seed, int) else list(seed)
+        self.generators = [torch.Generator(device=self.device).manual_seed(s) for s in seeds]
 
     def __len__(self) -> int:
         return self.n_real + self.n_synthetic
@@ -100,9 +104,8 @@ class MixedReplay:
         """Synthetic rows in every batch of this size under "mixed" (random under "union")."""
         return round(self.eta * batch_size) if self.mixing == "mixed" and self.n_synthetic else 0
 
-    def sample_indices(self, batch_size: int) -> torch.Tensor:
-        """Row indices into the packed tensor; real rows first, then synthetic ones."""
-        g, dev = self.generator, self.device
+    def _indices(self, g: torch.Generator, batch_size: int) -> torch.Tensor:
+        dev = self.device
         if self.mixing == "union":
             return torch.randint(len(self), (batch_size,), generator=g, device=dev)
         n_syn = self.synthetic_count(batch_size)
@@ -112,13 +115,33 @@ class MixedReplay:
         syn = torch.randint(self.n_synthetic, (n_syn,), generator=g, device=dev) + self.n_real
         return torch.cat([real, syn])
 
+    def sample_indices(self, batch_size: int) -> torch.Tensor:
+        """(K, B) row indices into the packed tensor; per seed real rows first, then synthetic."""
+        return torch.stack([self._indices(g, batch_size) for g in self.generators])
+
     def sample(self, batch_size: int) -> Batch:
-        rows = self.data.index_select(0, self.sample_indices(batch_size))
-        obs, actions, rewards, next_obs, dones = rows.split(self._splits, dim=1)
-        return Batch(obs, actions, rewards.squeeze(1), next_obs, dones.squeeze(1))
+        indices = self.sample_indices(batch_size)
+        rows = self.data.index_select(0, indices.flatten()).view(*indices.shape, -1)
+        obs, actions, rewards, next_obs, dones = rows.split(self._splits, dim=-1)
+        return Batch(obs, actions, rewards.squeeze(-1), next_obs, dones.squeeze(-1))
+
+    def seed_state(self, k: int = 0) -> dict:
+        """Seed index k's sampling state, as a one-seed replay saves it."""
+        return {"generator": self.generators[k].get_state()}
+
+    def load_seed_states(self, states: list[dict]) -> None:
+        if len(states) != len(self.generators):
+            raise HipodeError(
+                f"replay state: expected {len(self.generators)} seed states, found {len(states)}"
+            )
+        for generator, state in zip(self.generators, states, strict=True):
+            generator.set_state(state["generator"])
 
     def state_dict(self) -> dict:
-        return {"generator": self.generator.get_state()}
+        """A one-seed replay's state (seed_state(0))."""
+        if len(self.generators) != 1:
+            raise HipodeError(f"state_dict: {len(self.generators)} seeds; use seed_state(k)")
+        return self.seed_state(0)
 
     def load_state_dict(self, state: dict) -> None:
-        self.generator.set_state(state["generator"])
+        self.load_seed_states([state])

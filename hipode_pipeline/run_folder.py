@@ -268,5 +268,18 @@ def score_table_rows(result: TrainResult) -> list[list[Any]]:
     ]
 
 
+def seeds_summary(results: list[TrainResult]) -> str:
+    """The last scores of several seeds of one setting: mean, standard error and range."""
+    scores = [r.last.get("score_mean") for r in results]
+    if any(score is None for score in scores):
+        return f"{len(results)} seeds (no reference returns: see the return column)"
+    mean = sum(scores) / len(scores)
+    sem = (sum((s - mean) ** 2 for s in scores) / (len(scores) - 1) / len(scores)) ** 0.5
+    return (
+        f"last score over {len(scores)} seeds: mean {mean:.1f}, standard error {sem:.1f} "
+        f"(min {min(scores):.1f}, max {max(scores):.1f})"
+    )
+
+
 def _pm(mean: float | None, std: float | None, fmt: str) -> str:
     return "n/a" if mean is None else f"{fmt.format(mean)} ± {fmt.format(std or 0.0)}"

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import hashlib
 
+from hipode_pipeline.errors import SettingError
+
 SEED_MAX = 2**63 - 1  # torch.Generator.manual_seed and numpy accept 63-bit seeds everywhere
 
 
@@ -11,3 +13,28 @@ def derive_seed(seed: int, stream: str) -> int:
     """An independent 63-bit seed for the stream `stream` of a run seeded with `seed`."""
     digest = hashlib.sha256(f"{seed}:{stream}".encode()).digest()
     return int.from_bytes(digest[:8], "little") % (2**63)
+
+
+MAX_SEED_RANGE = 10_000  # seeds one list may name (a typo like 0-99999999 is refused early)
+
+
+def parse_seeds(text: str, flag: str = "--seeds") -> list[int]:
+    """Seeds written as ranges and lists, "0-4" or "0,2,5" or "0-2,7", in the order given."""
+    seeds: list[int] = []
+    for item in (part.strip() for part in str(text).split(",")):
+        low, dash, high = item.partition("-")
+        try:
+            first, last = int(low), int(high) if dash else int(low)
+        except ValueError:
+            raise SettingError(
+                f"{flag}: expected seeds like 0-4 or 0,2,5 (integers >= 0), found {text!r}"
+            ) from None
+        if not 0 <= first <= last <= SEED_MAX or last - first >= MAX_SEED_RANGE:
+            raise SettingError(
+                f"{flag}: expected ranges low-high with 0 <= low <= high and at most "
+                f"{MAX_SEED_RANGE} seeds, found {item!r}"
+            )
+        seeds.extend(range(first, last + 1))
+    if len(set(seeds)) != len(seeds):
+        raise SettingError(f"{flag}: expected each seed once, found {text!r}")
+    return seeds

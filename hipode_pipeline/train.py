@@ -8,11 +8,13 @@ rerunning the same command resumes it, or prints its scores when it is finished.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import time
 import tomllib
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -23,11 +25,11 @@ from hipode_pipeline.contract import find_artifact, table_learner, table_row
 from hipode_pipeline.data.load import load_source
 from hipode_pipeline.device import select_device
 from hipode_pipeline.errors import HipodeError, SettingError
-from hipode_pipeline.evaluate import EvalResult, check_data_fits_env, evaluate_policy
+from hipode_pipeline.evaluate import EvalResult, check_data_fits_env, evaluate_policies
 from hipode_pipeline.files import output_lock, write_json_atomic
 from hipode_pipeline.generate import MAX_ETA
 from hipode_pipeline.learners import learner_class
-from hipode_pipeline.learners.base import Learner
+from hipode_pipeline.learners.base import Learner, fast_bf16
 from hipode_pipeline.merge import MergedData, load_merged
 from hipode_pipeline.paths import stages_dir
 from hipode_pipeline.replay import MIXING_MODES, MixedReplay
@@ -53,6 +55,8 @@ MAX_SYNTHETIC_OVERUSE = 2.0
 MAX_STEPS = 100_000_000
 MAX_BATCH_SIZE = 1 << 20
 MAX_EVAL_EPISODES = 10_000
+MAX_SEEDS = 256  # seeds trained side by side in one process
+PRECISIONS = ("fp32", "bf16")
 
 
 @dataclass(frozen=True)
@@ -192,6 +196,18 @@ def builtin_learner_config(
     ).to_dict()
 
 
+def default_bf16(settings: dict[str, Any], learner: str, device: torch.device) -> bool:
+    """Whether a learner with bf16 = None runs bf16 matmuls on `device`: the choice of
+    stages/train.toml [<learner>.precision] for its kind, and only where bf16 is native."""
+    choice = settings.get(learner, {}).get("precision", {}).get(device.type, "fp32")
+    if choice not in PRECISIONS:
+        raise SettingError(
+            f"stages/train.toml [{learner}.precision] {device.type}: expected one of "
+            f"{PRECISIONS}, found {choice!r}"
+        )
+    return choice == "bf16" and fast_bf16(device)
+
+
 def _positive(name: str, value: int, upper: int) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= upper:
         raise SettingError(f"{name}: expected an integer in [1, {upper:,}], found {value!r}")
@@ -208,6 +224,50 @@ def run_training(
     eval_episodes: int | None = None,
     out_dir: Path = Path("runs"),
     *,
+    run_dir: Path | None = None,
+    **options: Any,
+) -> TrainResult:
+    """One seed's run: `train_seeds` with that seed alone (in `run_dir` if given)."""
+    return train_seeds(
+        task,
+        learner,
+        data,
+        steps,
+        [seed],
+        eval_every,
+        eval_episodes,
+        out_dir,
+        run_dirs=None if run_dir is None else [Path(run_dir)],
+        **options,
+    )[0]
+
+
+@dataclass
+class SeedRun:
+    """One seed's run folder and where it stands, inside a group trained together."""
+
+    seed: int
+    config: dict[str, Any]
+    run_dir: Path
+    state: str  # check_run_dir's decision: fresh | resume | replace
+    checkpoint: dict[str, Any] | None = None
+    evaluations: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def resume_step(self) -> int:
+        return 0 if self.checkpoint is None else int(self.checkpoint["learner"]["step"])
+
+
+def train_seeds(
+    task: str,
+    learner: str = "td3bc",
+    data: str = "merged",
+    steps: int | None = None,
+    seeds: Sequence[int] = (0,),
+    eval_every: int | None = None,
+    eval_episodes: int | None = None,
+    out_dir: Path = Path("runs"),
+    *,
     source: str | None = None,
     artifact: Path | None = None,
     artifact_seed: int = 0,
@@ -219,13 +279,15 @@ def run_training(
     device: str | None = None,
     root: Path | None = None,
     name: str | None = None,
-    run_dir: Path | None = None,
+    run_dirs: Sequence[Path] | None = None,
     force: bool = False,
     show_progress: bool = True,
-) -> TrainResult:
-    """Train `learner` on `task`'s data (merged: source ⊕ its artifact; source: η = 0), evaluate
-    it, and write the run folder. Everything is checked before the folder is touched; an
-    unfinished run with the same identity resumes, a finished one returns its stored scores."""
+) -> list[TrainResult]:
+    """Train `learner` on `task`'s data (merged: source ⊕ its artifact; source: η = 0) for each
+    of `seeds`, evaluate, and write one run folder per seed, the folder a run of that seed
+    alone writes. Built-in learners train all seeds in one process as one stacked model.
+    Everything is checked before any folder is touched; unfinished runs with the same identity
+    resume, finished ones return their stored scores."""
     task_obj = get_task(task)
     settings = train_settings()
     family = "d3rlpy" if learner.startswith("d3rlpy:") else learner
@@ -234,9 +296,18 @@ def run_training(
     per_learner, run = settings[family], settings["run"]
     if mixing not in MIXING_MODES:
         raise HipodeError(f"--mixing: expected one of {MIXING_MODES}, found {mixing!r}")
-    for flag, value in (("--seed", seed), ("--artifact-seed", artifact_seed)):
-        if not 0 <= value <= SEED_MAX:
-            raise SettingError(f"{flag}: expected an integer in [0, {SEED_MAX}], found {value}")
+    seeds = list(seeds)
+    if not seeds or len(set(seeds)) != len(seeds) or len(seeds) > MAX_SEEDS:
+        raise SettingError(
+            f"--seeds: expected 1 to {MAX_SEEDS} distinct seeds, found {seeds or 'none'}"
+        )
+    for flag, value in [*(("--seed", s) for s in seeds), ("--artifact-seed", artifact_seed)]:
+        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= SEED_MAX:
+            raise SettingError(f"{flag}: expected an integer in [0, {SEED_MAX}], found {value!r}")
+    if run_dirs is not None and len(run_dirs) != len(seeds):
+        raise SettingError(
+            f"run_dirs: expected one folder per seed ({len(seeds)}), found {len(run_dirs)}"
+        )
     device_obj = select_device(device)
     if steps is None:
         steps = per_learner["steps"] if device_obj.type == "cuda" else per_learner["cpu_steps"]
@@ -288,6 +359,8 @@ def run_training(
         learner_config = builtin_learner_config(
             settings, learner, task_obj, steps, learner_settings
         )
+        if learner_config["bf16"] is None:
+            learner_config["bf16"] = default_bf16(settings, learner, device_obj)
 
     manifest = merged.artifact_manifest or {}
     config = {
@@ -298,7 +371,7 @@ def run_training(
         "eta": eta,
         "mixing": mixing,
         "batch_size": batch_size,
-        "seed": seed,
+        "seed": seeds[0],
         "steps": steps,
         "eval_every": eval_every,
         "eval_episodes": eval_episodes,
@@ -323,85 +396,150 @@ def run_training(
         "torch_threads": torch.get_num_threads(),
         "versions": package_versions(),
     }
-    run_dir = Path(run_dir) if run_dir is not None else run_folder(out_dir, config, name)
+    runs = []
+    for i, seed in enumerate(seeds):
+        seed_config = {**config, "seed": seed}
+        if run_dirs is not None:
+            folder = Path(run_dirs[i])
+        else:
+            seed_name = name if name is None or len(seeds) == 1 else f"{name}-seed{seed}"
+            folder = run_folder(out_dir, seed_config, seed_name)
+        runs.append(SeedRun(seed, seed_config, folder, "fresh"))
     if data == "source" and (artifact is not None or requested_eta is not None):
         console.err.print(
             "[yellow]note:[/] --data source trains on the source alone: "
             "--artifact and --eta are not used"
         )
-    # one writer per run folder: a second identical command waits, then finds it finished
-    with output_lock(run_dir, command="hipode train"):
-        state, scores = check_run_dir(run_dir, config, steps, force)
-        if scores is not None:
-            console.err.print(
-                f"{run_dir} already finished {scores.get('steps')} updates: its scores"
-            )
-            return TrainResult.from_dict({**scores, "finished_earlier": True})
-        if eta_note:
-            console.err.print(f"[yellow]note:[/] {eta_note}")
-        if run_data.artifact_choice == "table":
-            console.err.print(f"synthetic data: {merged.artifact_path} (the learner's table row)")
-
+    results: dict[int, TrainResult] = {}
+    # one writer per run folder: a second identical command waits, then finds it finished;
+    # folders are locked in one order, so two overlapping seed lists never wait on each other
+    with contextlib.ExitStack() as locks:
+        for seed_run in sorted(runs, key=lambda r: str(r.run_dir)):
+            locks.enter_context(output_lock(seed_run.run_dir, command="hipode train"))
+        pending = []
+        for seed_run in runs:
+            seed_run.state, scores = check_run_dir(seed_run.run_dir, seed_run.config, steps, force)
+            if scores is not None:
+                console.err.print(
+                    f"{seed_run.run_dir} already finished {scores.get('steps')} updates: its scores"
+                )
+                results[seed_run.seed] = TrainResult.from_dict({**scores, "finished_earlier": True})
+            else:
+                pending.append(seed_run)
+        if pending:
+            if eta_note:
+                console.err.print(f"[yellow]note:[/] {eta_note}")
+            if run_data.artifact_choice == "table":
+                console.err.print(
+                    f"synthetic data: {merged.artifact_path} (the learner's table row)"
+                )
         if cls is None:
             from hipode_pipeline.learners.external import train_d3rlpy
 
-            return train_d3rlpy(
-                learner.split(":", 1)[1],
+            for seed_run in pending:
+                results[seed_run.seed] = train_d3rlpy(
+                    learner.split(":", 1)[1],
+                    merged,
+                    config=seed_run.config,
+                    run_dir=seed_run.run_dir,
+                    run_state=seed_run.state,
+                    device=device_obj,
+                    show_progress=show_progress,
+                )
+            return [results[seed] for seed in seeds]
+
+        for seed_run in pending:
+            seed_run.checkpoint = open_run_dir(seed_run.run_dir, seed_run.state)
+            if seed_run.checkpoint is not None:
+                seed_run.evaluations = list(seed_run.checkpoint["evaluations"])
+        # seeds resumed from one step train together; a group per distinct step otherwise
+        groups: dict[int, list[SeedRun]] = {}
+        for seed_run in pending:
+            groups.setdefault(seed_run.resume_step, []).append(seed_run)
+        for resume_step, group in sorted(groups.items()):
+            for result in _train_group(
+                cls,
+                learner_config,
                 merged,
-                config=config,
-                run_dir=run_dir,
-                run_state=state,
+                group,
+                resume_step,
                 device=device_obj,
                 show_progress=show_progress,
+            ):
+                results[result.seed] = result
+    return [results[seed] for seed in seeds]
+
+
+def _train_group(
+    cls: type[Learner],
+    learner_config: dict[str, Any],
+    merged: MergedData,
+    group: list[SeedRun],
+    resume_step: int,
+    *,
+    device: torch.device,
+    show_progress: bool,
+) -> list[TrainResult]:
+    """Seeds at one step, trained as one stacked learner; each run folder written as a run of
+    that seed alone writes it."""
+    config = group[0].config
+    seeds = [seed_run.seed for seed_run in group]
+    model = cls(
+        merged.real.obs_dim,
+        merged.real.act_dim,
+        cls.config_class.from_dict(learner_config),
+        device=device,
+        seed=seeds,
+    )
+    model.fit_statistics(merged.real)
+    replay = MixedReplay(
+        merged.real,
+        merged.synthetic,
+        eta=config["eta"],
+        mixing=config["mixing"],
+        device=device,
+        seed=seeds,
+    )
+    if resume_step:
+        origin = ", ".join(str(r.run_dir / "checkpoint.pt") for r in group)
+        model.load_seed_states([r.checkpoint["learner"] for r in group], origin=origin)
+        replay.load_seed_states([r.checkpoint["replay"] for r in group])
+        for seed_run in group:
+            console.err.print(f"resuming {seed_run.run_dir} from step {resume_step}")
+    precision = "bf16" if getattr(model, "use_bf16", False) else "fp32"
+    for seed_run in group:
+        seed_run.config["precision"] = precision
+        seed_run.config["seeds_trained_together"] = seeds
+        truncate_metrics(seed_run.run_dir / "metrics.jsonl", resume_step)
+        write_json_atomic(seed_run.run_dir / "config.json", seed_run.config)
+
+    train_seconds = _train_loop(model, replay, group, show_progress=show_progress)
+    ran = model.step - resume_step
+    results = []
+    for seed_run in group:
+        c = seed_run.config
+        results.append(
+            finish_run(
+                TrainResult(
+                    run_dir=str(seed_run.run_dir),
+                    task=c["task"],
+                    learner=c["learner"],
+                    data=c["data"],
+                    eta=c["eta"],
+                    steps=model.step,
+                    last={},
+                    best=None,
+                    updates_per_second=ran / train_seconds if train_seconds > 0 else 0.0,
+                    resumed_from=resume_step,
+                    evaluations=seed_run.evaluations,
+                    seed=seed_run.seed,
+                    env_id=c["env_id"],
+                    data_identity=data_identity(c),
+                ),
+                c["eval_episodes"],
             )
-
-        model = cls(
-            merged.real.obs_dim,
-            merged.real.act_dim,
-            cls.config_class.from_dict(learner_config),
-            device=device_obj,
-            seed=seed,
         )
-        model.fit_statistics(merged.real)
-        config["bf16_autocast"] = bool(getattr(model, "use_bf16", False))
-        replay = MixedReplay(
-            merged.real, merged.synthetic, eta=eta, mixing=mixing, device=device_obj, seed=seed
-        )
-        checkpoint = open_run_dir(run_dir, state)
-        evaluations: list[dict[str, Any]] = []
-        resumed_from = 0
-        if checkpoint is not None:
-            model.load_state_dict(checkpoint["learner"])
-            replay.load_state_dict(checkpoint["replay"])
-            evaluations = list(checkpoint["evaluations"])
-            resumed_from = model.step
-            console.err.print(f"resuming {run_dir} from step {resumed_from}")
-        truncate_metrics(run_dir / "metrics.jsonl", resumed_from)
-        write_json_atomic(run_dir / "config.json", config)
-
-        train_seconds = _train_loop(
-            model, replay, config, run_dir, evaluations, show_progress=show_progress
-        )
-        ran = model.step - resumed_from
-        return finish_run(
-            TrainResult(
-                run_dir=str(run_dir),
-                task=task_obj.name,
-                learner=learner,
-                data=data,
-                eta=eta,
-                steps=model.step,
-                last={},
-                best=None,
-                updates_per_second=ran / train_seconds if train_seconds > 0 else 0.0,
-                resumed_from=resumed_from,
-                evaluations=evaluations,
-                seed=seed,
-                env_id=env_id,
-                data_identity=data_identity(config),
-            ),
-            eval_episodes,
-        )
+    return results
 
 
 def _scalars(values: Any) -> dict[str, Any] | None:
@@ -410,15 +548,16 @@ def _scalars(values: Any) -> dict[str, Any] | None:
     return {k: v for k, v in values.items() if isinstance(v, str | int | float | bool)}
 
 
-def make_evaluator(policy, config: dict[str, Any]):
-    """The run's evaluation: its env, episodes and seed, scored with its reference returns."""
+def make_evaluator(policies, config: dict[str, Any], seeds: Sequence[int]):
+    """The runs' evaluation: their env and episodes, seed k's policy on seed k's starts, scored
+    with the data's reference returns; `policies` maps (K, n, ds) -> (K, n, da)."""
 
-    def evaluate() -> EvalResult:
-        return evaluate_policy(
-            policy,
+    def evaluate() -> list[EvalResult]:
+        return evaluate_policies(
+            policies,
             config["env_id"],
             episodes=config["eval_episodes"],
-            seed=config["seed"],
+            seeds=seeds,
             ref_min_score=config["ref_min_score"],
             ref_max_score=config["ref_max_score"],
         )
@@ -429,30 +568,24 @@ def make_evaluator(policy, config: dict[str, Any]):
 def _train_loop(
     model: Learner,
     replay: MixedReplay,
-    config: dict[str, Any],
-    run_dir: Path,
-    evaluations: list[dict[str, Any]],
+    group: list[SeedRun],
     *,
     show_progress: bool,
 ) -> float:
-    """Update until `config["steps"]`, logging, evaluating and checkpointing on schedule;
-    appends to `evaluations` and returns the seconds spent training (evaluation excluded)."""
+    """Update every seed of `group` until `config["steps"]`, logging, evaluating and
+    checkpointing each seed's folder on schedule; appends to each seed's evaluations and
+    returns the seconds spent training (evaluation excluded)."""
+    config = group[0].config
     steps, eval_every, log_every = config["steps"], config["eval_every"], config["log_every"]
     batch_size = config["batch_size"]
-    evaluate = make_evaluator(model.act, config)
+    evaluate = make_evaluator(model.act_all, config, [r.seed for r in group])
+    k = len(group)
+    label = f"train {config['learner']} {config['task']}" + (f" ×{k} seeds" if k > 1 else "")
     train_seconds, window_start, window_steps = 0.0, time.perf_counter(), 0
     bar_time, bar_step = window_start, model.step
-    with (
-        console.progress(disable=not show_progress) as prog,
-        open(run_dir / "metrics.jsonl", "a") as metrics_file,
-    ):
-        bar = prog.add_task(
-            f"train {config['learner']} {config['task']}",
-            total=steps,
-            completed=model.step,
-            rate="",
-            info="",
-        )
+    with contextlib.ExitStack() as files, console.progress(disable=not show_progress) as prog:
+        metrics_files = [files.enter_context(open(r.run_dir / "metrics.jsonl", "a")) for r in group]
+        bar = prog.add_task(label, total=steps, completed=model.step, rate="", info="")
         # metric sums stay on the device between log lines: no host sync per update
         sums: dict[str, torch.Tensor] = {}
         counts: dict[str, int] = {}
@@ -468,46 +601,84 @@ def _train_loop(
             if step % log_every and not evaluate_now:
                 now = time.perf_counter()
                 if now - bar_time >= 0.5:  # a live rate without a terminal write per update
-                    rate = (step - bar_step) / (now - bar_time)
-                    prog.update(bar, completed=step, rate=f"{rate:,.0f} upd/s")
+                    prog.update(bar, completed=step, rate=_rate(step - bar_step, now - bar_time, k))
                     bar_time, bar_step = now, step
                 continue
             elapsed = time.perf_counter() - window_start
             train_seconds += elapsed
-            record: dict[str, Any] = {
-                "step": step,
-                # each metric's mean over the updates since the last line
-                **{name: float(total) / counts[name] for name, total in sums.items()},
-                "updates_per_s": window_steps / elapsed,
-                "wall_s": round(elapsed, 3),
-            }
+            means = _window_means(sums, counts)
             sums, counts = {}, {}
-            if evaluate_now:
-                result = evaluate()
-                evaluations.append({"step": step, **result.summary()})
-                record.update({f"eval_{k}": v for k, v in evaluations[-1].items() if k != "step"})
-            metrics_file.write(json.dumps(record) + "\n")
-            metrics_file.flush()
-            # after the metrics line: a resume drops any line newer than its checkpoint
-            save_checkpoint(
-                run_dir / "checkpoint.pt",
-                {
-                    "learner": model.state_dict(),
-                    "replay": replay.state_dict(),
-                    "evaluations": evaluations,
-                },
-            )
-            last = evaluations[-1] if evaluations else None
-            info = (
-                f"score {last['score_mean']:.1f} @ {last['step']}"
-                if last and last["score_mean"] is not None
-                else ""
-            )
+            results = evaluate() if evaluate_now else None
+            for i, seed_run in enumerate(group):
+                record: dict[str, Any] = {
+                    "step": step,
+                    **{name: values[i] for name, values in means.items()},
+                    "updates_per_s": window_steps / elapsed,
+                    "wall_s": round(elapsed, 3),
+                }
+                if results is not None:
+                    seed_run.evaluations.append({"step": step, **results[i].summary()})
+                    record.update(
+                        {
+                            f"eval_{key}": v
+                            for key, v in seed_run.evaluations[-1].items()
+                            if key != "step"
+                        }
+                    )
+                    record["eval_returns"] = results[i].returns
+                metrics_files[i].write(json.dumps(record) + "\n")
+                metrics_files[i].flush()
+                # after the metrics line: a resume drops any line newer than its checkpoint
+                save_checkpoint(
+                    seed_run.run_dir / "checkpoint.pt",
+                    {
+                        "learner": model.seed_state(i),
+                        "replay": replay.seed_state(i),
+                        "evaluations": seed_run.evaluations,
+                    },
+                )
             prog.update(
-                bar, completed=step, rate=f"{record['updates_per_s']:,.0f} upd/s", info=info
+                bar,
+                completed=step,
+                rate=_rate(window_steps, elapsed, k),
+                info=_score_info(group),
             )
             window_start, window_steps = time.perf_counter(), 0
             bar_time, bar_step = window_start, step
-    if not evaluations or evaluations[-1]["step"] != model.step:
-        evaluations.append({"step": model.step, **evaluate().summary()})
+    if any(not r.evaluations or r.evaluations[-1]["step"] != model.step for r in group):
+        for seed_run, result in zip(group, evaluate(), strict=True):
+            if not seed_run.evaluations or seed_run.evaluations[-1]["step"] != model.step:
+                seed_run.evaluations.append({"step": model.step, **result.summary()})
     return train_seconds
+
+
+def _window_means(sums: dict[str, torch.Tensor], counts: dict[str, int]) -> dict[str, list[float]]:
+    """Each metric's mean over the updates since the last line, one value per seed, read from
+    the device in one transfer."""
+    if not sums:
+        return {}
+    names = list(sums)
+    totals = torch.stack([sums[name] for name in names]).cpu().double()
+    means = totals / torch.tensor([[counts[name]] for name in names], dtype=torch.float64)
+    return dict(zip(names, means.tolist(), strict=True))
+
+
+def _rate(updates: int, seconds: float, seeds: int) -> str:
+    per_seed = updates / seconds if seconds > 0 else 0.0
+    if seeds == 1:
+        return f"{per_seed:,.0f} upd/s"
+    return f"{per_seed:,.0f} upd/s per seed, {per_seed * seeds:,.0f} in all"
+
+
+def _score_info(group: list[SeedRun]) -> str:
+    scores = [
+        r.evaluations[-1]["score_mean"]
+        for r in group
+        if r.evaluations and r.evaluations[-1]["score_mean"] is not None
+    ]
+    if not scores:
+        return ""
+    step = group[0].evaluations[-1]["step"]
+    if len(scores) == 1:
+        return f"score {scores[0]:.1f} @ {step}"
+    return f"score {sum(scores) / len(scores):.1f} (mean of {len(scores)}) @ {step}"

@@ -21,3 +21,13 @@ def dataset_root(tmp_path, monkeypatch):
     root.mkdir()
     monkeypatch.setenv("MINARI_DATASETS_PATH", str(root))
     return root
+
+
+@pytest.fixture
+def tiny_pair(tmp_path):
+    """A tiny hopper-shaped source file and a synthetic artifact built on it."""
+    from test_merge import write_source, write_synthetic
+
+    source = write_source(tmp_path / "source.hdf5")
+    write_synthetic(tmp_path / "art.hdf5", source)
+    return str(source), tmp_path / "art.hdf5"

@@ -166,7 +166,7 @@ def test_statistics_come_from_real_rows_with_synthetic_rows_present(name):
         assert learner.reward_scale == alone.reward_scale
 
     batch = replay.sample(64)
-    assert int((batch.observations[:, 0] > SHIFT / 2).sum()) == 32  # half the rows synthetic
+    assert int((batch.observations[0, :, 0] > SHIFT / 2).sum()) == 32  # half the rows synthetic
     for _ in range(2):  # TD3+BC's actor moves on its second update
         metrics = learner.update(batch)
     assert all(np.isfinite(float(v)) for v in metrics.values()), metrics

@@ -5,7 +5,8 @@ with done = 0 and done = 1, and the random draws come from a generator re-seeded
 here (for CQL that pins the order of its draws, as bitwise resumes do anyway). Each test checks
 the reported losses, each gradient (Adam's first moment after one step is (1 - beta1) g), each
 parameter delta (Adam's first step is exactly -lr g / (|g| + eps)) and the Polyak targets. Only
-the layouts of the parameters are read from the learners, never their loss code.
+the layouts of the parameters are read from the learners, never their loss code: every
+parameter is stacked over training seeds (leading axis K), and a layer's weight is (in, out).
 """
 
 from __future__ import annotations
@@ -47,8 +48,8 @@ def real_data() -> tuple[Transitions, list[float]]:
     return Transitions(obs, actions, rewards, next_obs, terminals, timeouts), returns
 
 
-def golden_batch(max_action: float) -> Batch:
-    rng = np.random.default_rng(5)
+def golden_batch(max_action: float, seed: int = 5) -> Batch:
+    rng = np.random.default_rng(seed)
     scale, shift = np.array([1.0, 5.0, 0.2]), np.array([0.5, -2.0, 3.0])
     as_t = lambda x: torch.as_tensor(np.asarray(x, np.float32))  # noqa: E731
     return Batch(
@@ -69,15 +70,21 @@ def set_weights(learner, seed: int, scale: float) -> None:
                 p.copy_(torch.empty(p.shape).uniform_(-scale, scale, generator=g))
 
 
-def snapshot(learner) -> dict[str, dict[str, torch.Tensor]]:
+def snapshot(learner, k: int = 0) -> dict[str, dict[str, torch.Tensor]]:
+    """Seed k's parameters, without the seed axis."""
     return {
-        key: {n: p.detach().double().clone() for n, p in m.named_parameters()}
+        key: {n: p.detach().double()[k].clone() for n, p in m.named_parameters()}
         for key, m in learner.modules.items()
     }
 
 
-def float64(x: torch.Tensor) -> torch.Tensor:
+def as64(x: torch.Tensor) -> torch.Tensor:
     return x.detach().double()
+
+
+def float64(x: torch.Tensor, k: int = 0) -> torch.Tensor:
+    """Seed k's part of a stacked tensor, in float64."""
+    return x.detach().double()[k]
 
 
 def normalizer(real: Transitions) -> tuple[torch.Tensor, torch.Tensor]:
@@ -88,11 +95,12 @@ def normalizer(real: Transitions) -> tuple[torch.Tensor, torch.Tensor]:
 
 # ---- reference networks (float64, from parameter dicts) ------------------------------------
 def mlp(params: dict[str, torch.Tensor], x: torch.Tensor, prefix: str = "") -> torch.Tensor:
-    """Linear layers `prefix<i>.weight/bias` in index order, ReLU between them."""
-    pattern = re.compile(rf"^{re.escape(prefix)}(\d+)\.weight$")
+    """Linear layers `prefix`weights.i (in, out) and biases.i (1, out) in index order, ReLU
+    between them."""
+    pattern = re.compile(rf"^{re.escape(prefix)}weights\.(\d+)$")
     index = sorted(int(m.group(1)) for k in params if (m := pattern.match(k)))
     for j, i in enumerate(index):
-        x = x @ params[f"{prefix}{i}.weight"].T + params[f"{prefix}{i}.bias"]
+        x = x @ params[f"{prefix}weights.{i}"] + params[f"{prefix}biases.{i}"][0]
         if j < len(index) - 1:
             x = torch.relu(x)
     return x
@@ -134,20 +142,22 @@ def polyak(target, online, tau: float) -> dict[str, torch.Tensor]:
 
 
 # ---- comparisons ------------------------------------------------------------------------------
-def assert_metric(metrics, name: str, expected: torch.Tensor) -> None:
+def assert_metric(metrics, name: str, expected: torch.Tensor, k: int = 0) -> None:
     got = metrics[name]
-    assert isinstance(got, torch.Tensor) and got.dim() == 0, name
-    np.testing.assert_allclose(float(got), float(expected.detach()), rtol=RTOL, err_msg=name)
+    assert isinstance(got, torch.Tensor) and got.dim() == 1, name  # one value per seed
+    np.testing.assert_allclose(float(got[k]), float(expected.detach()), rtol=RTOL, err_msg=name)
 
 
-def assert_step(learner, module: str, optimizer: str, before, gradients, lr: float) -> None:
+def assert_step(
+    learner, module: str, optimizer: str, before, gradients, lr: float, k: int = 0
+) -> None:
     """Per tensor: the learner's gradient (from Adam's first moment) is the reference one, and
     its weights moved by Adam's first step on that gradient."""
     opt = learner.optimizers[optimizer]
     beta1 = opt.param_groups[0]["betas"][0]
     for name, p in learner.modules[module].named_parameters():
         g_expected = gradients[name]
-        g_got = opt.state[p]["exp_avg"].double() / (1 - beta1)
+        g_got = opt.state[p]["exp_avg"].double()[k] / (1 - beta1)
         # absolute slack for entries that cancel to ~0: fp32 rounding of the larger terms
         atol = 1e-6 * float(g_expected.abs().max()) + 1e-12
         np.testing.assert_allclose(
@@ -156,7 +166,7 @@ def assert_step(learner, module: str, optimizer: str, before, gradients, lr: flo
         # Adam's step on the learner's own gradient: a near-zero entry's step is sensitive to
         # its fp32 rounding, which the gradient check above already bounds
         np.testing.assert_allclose(
-            (float64(p) - before[module][name]).numpy(),
+            (float64(p, k) - before[module][name]).numpy(),
             (-lr * g_got / (g_got.abs() + ADAM_EPS)).numpy(),
             rtol=RTOL,
             atol=1e-7,  # about the float32 spacing of the weights (|w| < 1)
@@ -164,10 +174,10 @@ def assert_step(learner, module: str, optimizer: str, before, gradients, lr: flo
         )
 
 
-def assert_params(learner, module: str, expected, atol: float = 1e-7) -> None:
+def assert_params(learner, module: str, expected, atol: float = 1e-7, k: int = 0) -> None:
     for name, p in learner.modules[module].named_parameters():
         np.testing.assert_allclose(
-            float64(p).numpy(),
+            float64(p, k).numpy(),
             expected[name].numpy(),
             rtol=RTOL,
             atol=atol,
@@ -194,10 +204,10 @@ TD3BC_CONFIG = dict(
 def td3bc_reference(before, batch: Batch, mean, std, normal: torch.Tensor, c: TD3BCConfig):
     """TD3+BC (Fujimoto & Gu 2021, Alg. 1 and Eq. 3; actor MSE as in the authors' code)."""
     s, s2 = (
-        (float64(batch.observations) - mean) / std,
-        (float64(batch.next_observations) - mean) / std,
+        (as64(batch.observations) - mean) / std,
+        (as64(batch.next_observations) - mean) / std,
     )
-    a, r, d = float64(batch.actions), float64(batch.rewards), float64(batch.dones)
+    a, r, d = as64(batch.actions), as64(batch.rewards), as64(batch.dones)
     ma = c.max_action
     # target policy smoothing: eps ~ clip(N(0, sigma), -c, c), both in units of max_action
     eps = (c.policy_noise * normal.double()).clamp(-c.noise_clip, c.noise_clip) * ma
@@ -244,7 +254,7 @@ def test_td3bc_one_update_matches_the_paper():
     set_weights(learner, seed=1, scale=1.0)
     before = snapshot(learner)
     batch = golden_batch(c.max_action)
-    learner.generator.manual_seed(42)
+    learner.generators[0].manual_seed(42)
     normal = torch.randn((BATCH, ACT_DIM), generator=torch.Generator().manual_seed(42))
     expected = td3bc_reference(before, batch, *normalizer(real), normal, c)
     # the fixture exercises the noise clip and the action clamp
@@ -258,6 +268,34 @@ def test_td3bc_one_update_matches_the_paper():
     assert_step(learner, "actor", "actor", before, *expected["actor"])
     assert_params(learner, "critic_target", expected["critic_target"])
     assert_params(learner, "actor_target", expected["actor_target"])
+
+
+def test_td3bc_stacked_seeds_each_match_the_paper():
+    """Two seeds in one stacked learner, each with its own weights, batch and noise: each
+    seed's update is the paper's on its own numbers (lambda, losses, Adam, targets per seed)."""
+    c = TD3BCConfig(**TD3BC_CONFIG)
+    real, _ = real_data()
+    learner = TD3BC(OBS_DIM, ACT_DIM, c, device="cpu", seed=[0, 1])
+    learner.fit_statistics(real)
+    set_weights(learner, seed=1, scale=1.0)
+    before = [snapshot(learner, k) for k in range(2)]
+    batches = [golden_batch(c.max_action), golden_batch(c.max_action, seed=6)]
+    expected = []
+    for k, draw_seed in enumerate((42, 43)):
+        learner.generators[k].manual_seed(draw_seed)
+        normal = torch.randn((BATCH, ACT_DIM), generator=torch.Generator().manual_seed(draw_seed))
+        expected.append(td3bc_reference(before[k], batches[k], *normalizer(real), normal, c))
+    assert not torch.equal(before[0]["actor"]["weights.0"], before[1]["actor"]["weights.0"])
+
+    metrics = learner.update(Batch(*(torch.stack(f) for f in zip(*batches, strict=True))))
+
+    for k in range(2):
+        for name, value in expected[k]["metrics"].items():
+            assert_metric(metrics, name, value, k=k)
+        assert_step(learner, "critic", "critic", before[k], *expected[k]["critic"], k=k)
+        assert_step(learner, "actor", "actor", before[k], *expected[k]["actor"], k=k)
+        assert_params(learner, "critic_target", expected[k]["critic_target"], k=k)
+        assert_params(learner, "actor_target", expected[k]["actor_target"], k=k)
 
 
 def test_td3bc_delays_actor_and_targets():
@@ -295,11 +333,11 @@ IQL_CONFIG = dict(
 def iql_reference(before, batch: Batch, mean, std, reward_scale: float, c: IQLConfig):
     """IQL (Kostrikov et al. 2022, Eqs. 5-7; rewards scaled by 1000 / return range, CORL)."""
     s, s2 = (
-        (float64(batch.observations) - mean) / std,
-        (float64(batch.next_observations) - mean) / std,
+        (as64(batch.observations) - mean) / std,
+        (as64(batch.next_observations) - mean) / std,
     )
-    a, d = float64(batch.actions), float64(batch.dones)
-    r = float64(batch.rewards) * reward_scale
+    a, d = as64(batch.actions), as64(batch.dones)
+    r = as64(batch.rewards) * reward_scale
     ct = before["critic_target"]
     target_q = torch.minimum(q_value(ct, 0, s, a), q_value(ct, 1, s, a))
 
@@ -357,7 +395,7 @@ def test_iql_one_update_matches_the_paper(deterministic):
     learner.fit_statistics(real)
     reward_scale = 1000.0 / (max(returns) - min(returns))
     assert learner.reward_scale == pytest.approx(reward_scale, rel=1e-9)
-    set_weights(learner, seed=2, scale=0.6)
+    set_weights(learner, seed=3, scale=0.6)
     before = snapshot(learner)
     batch = golden_batch(c.max_action)
     expected = iql_reference(before, batch, *normalizer(real), reward_scale, c)
@@ -412,10 +450,10 @@ def tanh_gaussian(params, s, eps, max_action: float):
 def cql_reference(before, batch: Batch, mean, std, draws, c: CQLConfig):
     """CQL(H) with importance-sampled logsumexp (Kumar et al. 2020, Eq. 4 and App. F) on SAC."""
     s, s2 = (
-        (float64(batch.observations) - mean) / std,
-        (float64(batch.next_observations) - mean) / std,
+        (as64(batch.observations) - mean) / std,
+        (as64(batch.next_observations) - mean) / std,
     )
-    a, r, d = float64(batch.actions), float64(batch.rewards), float64(batch.dones)
+    a, r, d = as64(batch.actions), as64(batch.rewards), as64(batch.dones)
     eps_pi, eps_next, uniform, eps_proposals = (x.double() for x in draws)
     target_entropy = -float(ACT_DIM)
     n = c.cql_n_actions
@@ -519,7 +557,7 @@ def test_cql_one_update_matches_the_paper(variant):
     set_weights(learner, seed=3, scale=0.6)
     before = snapshot(learner)
     batch = golden_batch(c.max_action)
-    learner.generator.manual_seed(77)
+    learner.generators[0].manual_seed(77)
     draws = cql_draws(77, c.cql_n_actions, c.max_action)
     expected = cql_reference(before, batch, *normalizer(real), draws, c)
 
@@ -534,3 +572,29 @@ def test_cql_one_update_matches_the_paper(variant):
         assert_step(learner, "entropy", "entropy", before, *expected["entropy"])
     else:
         assert torch.equal(float64(learner.log_alpha), before["entropy"]["log_alpha"])
+
+
+def test_cql_stacked_seeds_each_match_the_paper():
+    """Two CQL seeds in one stacked learner: per-seed temperature, draws and conservative term."""
+    c = CQLConfig(**CQL_CONFIG)
+    real, _ = real_data()
+    learner = CQL(OBS_DIM, ACT_DIM, c, device="cpu", seed=[0, 1])
+    learner.fit_statistics(real)
+    set_weights(learner, seed=3, scale=0.6)
+    before = [snapshot(learner, k) for k in range(2)]
+    batches = [golden_batch(c.max_action), golden_batch(c.max_action, seed=8)]
+    expected = []
+    for k, draw_seed in enumerate((77, 78)):
+        learner.generators[k].manual_seed(draw_seed)
+        draws = cql_draws(draw_seed, c.cql_n_actions, c.max_action)
+        expected.append(cql_reference(before[k], batches[k], *normalizer(real), draws, c))
+
+    metrics = learner.update(Batch(*(torch.stack(f) for f in zip(*batches, strict=True))))
+
+    for k in range(2):
+        for name, value in expected[k]["metrics"].items():
+            assert_metric(metrics, name, value, k=k)
+        assert_step(learner, "critic", "critic", before[k], *expected[k]["critic"], k=k)
+        assert_params(learner, "critic_target", expected[k]["critic_target"], k=k)
+        assert_step(learner, "actor", "actor", before[k], *expected[k]["actor"], k=k)
+        assert_step(learner, "entropy", "entropy", before[k], *expected[k]["entropy"], k=k)

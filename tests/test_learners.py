@@ -7,8 +7,9 @@ import pytest
 import torch
 
 from hipode_pipeline.data.transitions import Transitions
+from hipode_pipeline.errors import HipodeError
 from hipode_pipeline.learners import CQL, IQL, TD3BC, CQLConfig, IQLConfig, TD3BCConfig
-from hipode_pipeline.replay import MixedReplay
+from hipode_pipeline.replay import Batch, MixedReplay
 
 HORIZON = 15
 
@@ -81,8 +82,8 @@ def test_learner_beats_random_policy(name):
     replay = MixedReplay(data, device="cpu", seed=0)
     for _ in range(steps):
         metrics = learner.update(replay.sample(64))
-    # metrics stay on the device (0-dim tensors): the driver reads them at log time
-    assert all(isinstance(v, torch.Tensor) and v.dim() == 0 for v in metrics.values())
+    # metrics stay on the device, one entry per seed: the driver reads them at log time
+    assert all(isinstance(v, torch.Tensor) and v.shape == (1,) for v in metrics.values())
     assert all(np.isfinite(float(v)) for v in metrics.values())
     random_return = rollout(random_policy)
     data_return = rollout(lambda s: -1.5 * s)  # the controller without its noise: near-optimal
@@ -177,3 +178,104 @@ def test_seed_alone_decides_the_weights(name):
     # every tensor moved (TD3+BC's actor and targets on its 2nd and 4th updates)
     unchanged = [k for k in after if torch.equal(after[k], initial[k])]
     assert not unchanged, unchanged
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_stacked_seeds_follow_their_separate_runs(name):
+    """K seeds in one stacked learner: each seed's losses and weights after 20 updates are those
+    of a run of that seed alone (its own init, batches and draws), up to float rounding."""
+    cls, config, _ = CASES[name]
+    data = scripted_dataset(episodes=20)
+    seeds = [4, 0, 9]
+    stacked = cls(2, 2, config, device="cpu", seed=seeds)
+    stacked.fit_statistics(data)
+    stacked_replay = MixedReplay(data, device="cpu", seed=seeds)
+    alone = []
+    for seed in seeds:
+        learner = cls(2, 2, config, device="cpu", seed=seed)
+        learner.fit_statistics(data)
+        alone.append((learner, MixedReplay(data, device="cpu", seed=seed)))
+    for _ in range(20):
+        metrics = stacked.update(stacked_replay.sample(32))
+        single = [learner.update(replay.sample(32)) for learner, replay in alone]
+        for i, seed_metrics in enumerate(single):
+            for key, value in seed_metrics.items():
+                torch.testing.assert_close(metrics[key][i : i + 1], value, rtol=1e-4, atol=1e-5)
+    for i, (learner, _) in enumerate(alone):
+        state, own = stacked.seed_state(i), learner.state_dict()
+        assert state["seed"] == seeds[i] and state["step"] == own["step"] == 20
+        for key, module_state in own["modules"].items():
+            for param, tensor in module_state.items():
+                torch.testing.assert_close(
+                    state["modules"][key][param], tensor, rtol=1e-4, atol=1e-6, msg=param
+                )
+    # the seeds did not stay alike: the test compares different networks
+    first = stacked.seed_state(0)["modules"]["critic"]["weights.0"]
+    assert not torch.allclose(first, stacked.seed_state(1)["modules"]["critic"]["weights.0"])
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_a_seed_of_a_stacked_run_resumes_alone_and_back(name):
+    """seed_state(k) of a stacked learner is a one-seed checkpoint: loaded alone it continues
+    as it would have inside the stack, and stacked again it restores the stack exactly."""
+    cls, config, _ = CASES[name]
+    data = scripted_dataset(episodes=20)
+    seeds = [2, 5]
+    stacked = cls(2, 2, config, device="cpu", seed=seeds)
+    stacked.fit_statistics(data)
+    replay = MixedReplay(data, device="cpu", seed=seeds)
+    for _ in range(3):
+        stacked.update(replay.sample(16))
+    states = [stacked.seed_state(i) for i in range(2)]
+    replay_states = [replay.seed_state(i) for i in range(2)]
+
+    again = cls(2, 2, config, device="cpu", seed=[7, 8])
+    again.load_seed_states(states)
+    again_replay = MixedReplay(data, device="cpu", seed=[7, 8])
+    again_replay.load_seed_states(replay_states)
+    expected = _floats_per_seed(stacked.update(replay.sample(16)))
+    assert _floats_per_seed(again.update(again_replay.sample(16))) == expected
+
+    alone = cls(2, 2, config, device="cpu", seed=99)
+    alone.load_state_dict(states[1])
+    alone_replay = MixedReplay(data, device="cpu", seed=99)
+    alone_replay.load_state_dict(replay_states[1])
+    got = _floats_per_seed(alone.update(alone_replay.sample(16)))
+    for key, values in got.items():
+        assert values[0] == pytest.approx(expected[key][1], rel=1e-4, abs=1e-6), key
+
+
+def _floats_per_seed(metrics):
+    return {name: value.tolist() for name, value in metrics.items()}
+
+
+def test_stacked_learner_refuses_a_plain_batch_and_duplicate_seeds():
+    data = scripted_dataset(episodes=5)
+    learner = TD3BC(2, 2, TD3BCConfig(hidden_dim=8), device="cpu", seed=[0, 1])
+    plain = MixedReplay(data, device="cpu", seed=0).sample(8)
+    with pytest.raises(HipodeError, match="expected a \\(K=2, B"):
+        learner.update(Batch(*(field[0] for field in plain)))
+    with pytest.raises(HipodeError, match="distinct training seeds"):
+        TD3BC(2, 2, TD3BCConfig(hidden_dim=8), device="cpu", seed=[3, 3])
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_bf16_runs_hidden_matmuls_only_and_stays_near_fp32(name):
+    """bf16 changes the hidden layers' arithmetic (the results differ from fp32) while heads,
+    targets and losses come out in fp32, and one update's losses stay near fp32's."""
+    cls, config, _ = CASES[name]
+    data = scripted_dataset(episodes=20)
+    batch = MixedReplay(data, device="cpu", seed=0).sample(64)
+    metrics = {}
+    for bf16 in (False, True):
+        learner = cls(
+            2, 2, type(config)(**{**config.to_dict(), "bf16": bf16}), device="cpu", seed=0
+        )
+        learner.fit_statistics(data)
+        assert learner.use_bf16 is bf16
+        q = learner.critic(batch.observations, batch.actions)
+        assert q.dtype == torch.float32
+        metrics[bf16] = {key: float(value) for key, value in learner.update(batch).items()}
+    assert metrics[True] != metrics[False]
+    for key, value in metrics[False].items():
+        assert metrics[True][key] == pytest.approx(value, rel=0.05, abs=0.05), key

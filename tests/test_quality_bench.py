@@ -1,6 +1,6 @@
 """The sweep engine (`hipode sweep`, and bench/quality.py, its thin caller) on tiny data: both
 arms on the same seed and budget, the artifact built when missing, the report files,
-resume/skip, several learners, and clear user errors."""
+resume/skip, several learners, and clear user errors (units of seeds: test_sweep_units.py)."""
 
 from __future__ import annotations
 
@@ -159,6 +159,7 @@ def test_bench_quality_is_the_package_command_with_the_repository_defaults():
     assert shown.exit_code == 0, shown.output
     assert "bench/results" in shown.output and "bench/out/quality" in shown.output
     assert "--learners" in shown.output and "--engine" in shown.output
+    assert "--seeds-per-process" in shown.output and "0-4" in shown.output
     # the engine lives in the package: the script holds no sweep code of its own
     text = (BENCH / "quality.py").read_text()
     assert "def run_" not in text and "hipode_pipeline.commands.sweep" in text
@@ -227,7 +228,7 @@ def test_ray_engine_without_ray_names_the_install(monkeypatch):
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray raises ImportError
     spec = RunSpec("hopper-m-r", "eta0", "source", 0.0, 0, 10, 10, 1, "out", "root")
     with pytest.raises(HipodeError, match=r"pip install 'hipode-pipeline\[ray\]'"):
-        next(engines.run_ray([spec], None, 1))
+        next(engines.run_ray([[spec]], None, 1))
 
 
 def test_ray_engine_runs_a_tiny_sweep(tmp_path):
@@ -249,11 +250,17 @@ def test_ray_engine_runs_a_tiny_sweep(tmp_path):
         "ray",
         "--workers",
         "1",
+        "--seeds",
+        "0,1",
     )
     assert done.exit_code == 0, done.output
     result = json.loads(done.stdout)
     assert {r["arm"] for r in result["runs"]} == {"eta0", "hipode"}
     assert all(r["status"] == "trained" for r in result["runs"])
+    # one Ray task per arm trains both seeds together
+    assert all(r["seeds_trained_together"] == [0, 1] for r in result["runs"])
+    for arm in ("eta0", "hipode"):
+        assert len({r["worker_pid"] for r in result["runs"] if r["arm"] == arm}) == 1
     assert result["machine"]["engine"] == "ray"
 
 

@@ -29,9 +29,9 @@ def test_mixed_batches_hold_round_eta_b_synthetic_rows(eta, batch):
     replay = MixedReplay(marked(1000, 1.0), marked(50, -1.0), eta=eta, seed=0)
     for _ in range(5):
         b = replay.sample(batch)
-        synthetic = (b.observations[:, 0] == -1.0).sum().item()
+        synthetic = (b.observations[0, :, 0] == -1.0).sum().item()
         assert synthetic == round(eta * batch)
-        assert torch.equal(b.rewards == -1.0, b.observations[:, 0] == -1.0)  # rows stay whole
+        assert torch.equal(b.rewards[0] == -1.0, b.observations[0, :, 0] == -1.0)  # rows stay whole
 
 
 def test_eta_zero_never_touches_synthetic_data():
@@ -43,7 +43,7 @@ def test_eta_zero_never_touches_synthetic_data():
 def test_union_sampling_is_uniform_over_all_rows():
     replay = MixedReplay(marked(300, 1.0), marked(100, -1.0), eta=0.0, mixing="union", seed=0)
     fractions = [
-        (replay.sample(1000).observations[:, 0] == -1.0).float().mean().item() for _ in range(20)
+        (replay.sample(1000).observations[0, :, 0] == -1.0).float().mean().item() for _ in range(20)
     ]
     assert abs(np.mean(fractions) - 0.25) < 0.02
     assert np.std(fractions) > 0  # the count varies per batch, unlike mixed batches
@@ -87,3 +87,23 @@ def test_bad_settings_fail_clearly():
         MixedReplay(marked(10, 1.0), marked(10, 1.0), eta=1.5)
     with pytest.raises(HipodeError, match="obs/act dims"):
         MixedReplay(marked(10, 1.0), marked(10, 1.0, obs_dim=4), eta=0.5)
+
+
+def test_each_seed_draws_the_rows_a_run_of_that_seed_alone_draws():
+    data = marked(500, 1.0)
+    data = Transitions(
+        np.arange(500, dtype=np.float32)[:, None].repeat(3, 1),
+        data.actions,
+        data.rewards,
+        data.next_observations,
+        data.terminals,
+        data.timeouts,
+    )
+    stacked = MixedReplay(data, marked(40, -1.0), eta=0.25, seed=[5, 1, 8])
+    alone = [MixedReplay(data, marked(40, -1.0), eta=0.25, seed=s) for s in (5, 1, 8)]
+    for _ in range(3):
+        batch = stacked.sample(20)
+        assert batch.observations.shape == (3, 20, 3) and batch.rewards.shape == (3, 20)
+        for k, replay in enumerate(alone):
+            assert torch.equal(batch.observations[k], replay.sample(20).observations[0])
+    assert not torch.equal(batch.observations[0], batch.observations[1])

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 from builders import make_episodes, make_minari_dataset
-from test_merge import write_source, write_synthetic
+from test_merge import write_synthetic
 from typer.testing import CliRunner
 
 import hipode_pipeline.train as train_module
@@ -24,13 +24,6 @@ from hipode_pipeline.tasks import get_task
 from hipode_pipeline.train import run_training
 
 TINY = ["--steps", "20", "--eval-every", "10", "--eval-episodes", "2", "--batch-size", "32"]
-
-
-@pytest.fixture
-def tiny_pair(tmp_path):
-    source = write_source(tmp_path / "source.hdf5")
-    write_synthetic(tmp_path / "art.hdf5", source)
-    return str(source), tmp_path / "art.hdf5"
 
 
 def test_train_cli_writes_run_folder_and_scores(tmp_path, tiny_pair):
@@ -147,7 +140,7 @@ def test_interrupted_run_resumes_exactly(tmp_path, tiny_pair, monkeypatch):
     )
     reference = run_training("hopper-m-r", out_dir=tmp_path / "a", **common)
 
-    real_evaluate, calls = train_module.evaluate_policy, []
+    real_evaluate, calls = train_module.evaluate_policies, []
 
     def interrupt_on_second_evaluation(*args, **kwargs):
         calls.append(1)
@@ -155,10 +148,10 @@ def test_interrupted_run_resumes_exactly(tmp_path, tiny_pair, monkeypatch):
             raise KeyboardInterrupt
         return real_evaluate(*args, **kwargs)
 
-    monkeypatch.setattr(train_module, "evaluate_policy", interrupt_on_second_evaluation)
+    monkeypatch.setattr(train_module, "evaluate_policies", interrupt_on_second_evaluation)
     with pytest.raises(KeyboardInterrupt):
         run_training("hopper-m-r", out_dir=tmp_path / "b", **common)
-    monkeypatch.setattr(train_module, "evaluate_policy", real_evaluate)
+    monkeypatch.setattr(train_module, "evaluate_policies", real_evaluate)
     resumed = run_training("hopper-m-r", out_dir=tmp_path / "b", **common)
     assert resumed.resumed_from == 10 and resumed.steps == 30
     assert resumed.evaluations == reference.evaluations

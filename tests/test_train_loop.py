@@ -10,40 +10,55 @@ from hipode_pipeline import train as train_module
 
 
 class CountingLearner:
-    """Reports its own step number as a loss, and a second metric every other step."""
+    """Two seeds; seed k reports its step number plus 100 k as a loss, and a second metric every
+    other step."""
 
     def __init__(self):
         self.step = 0
 
     def update(self, batch):
         self.step += 1
-        metrics = {"loss": torch.tensor(float(self.step))}
+        offset = torch.tensor([0.0, 100.0])
+        metrics = {"loss": float(self.step) + offset}
         if self.step % 2 == 0:
-            metrics["actor_loss"] = torch.tensor(10.0 * self.step)
+            metrics["actor_loss"] = 10.0 * self.step + offset
         return metrics
 
-    def act(self, observations):
+    def act_all(self, observations):
         return observations
 
-    def state_dict(self):
-        return {"step": self.step}
+    def seed_state(self, k):
+        return {"step": self.step, "seed_index": k}
 
 
 class NoReplay:
     def sample(self, batch_size):
         return None
 
-    def state_dict(self):
+    def seed_state(self, k):
         return {}
 
 
-def test_metrics_lines_hold_window_means(tmp_path, monkeypatch):
+def test_metrics_lines_hold_window_means_per_seed(tmp_path, monkeypatch):
     class Evaluation:
-        def summary(self):
-            return {"return_mean": 0.0, "return_std": 0.0, "score_mean": 1.0, "score_std": 0.0}
+        def __init__(self, score):
+            self.score = score
+            self.returns = [score]
 
-    monkeypatch.setattr(train_module, "make_evaluator", lambda policy, config: Evaluation)
-    monkeypatch.setattr(train_module, "save_checkpoint", lambda path, state: None)
+        def summary(self):
+            return {
+                "return_mean": 0.0,
+                "return_std": 0.0,
+                "score_mean": self.score,
+                "score_std": 0.0,
+            }
+
+    def evaluator(policies, config, seeds):
+        return lambda: [Evaluation(float(seed)) for seed in seeds]
+
+    saved = []
+    monkeypatch.setattr(train_module, "make_evaluator", evaluator)
+    monkeypatch.setattr(train_module, "save_checkpoint", lambda path, state: saved.append(state))
     config = {
         "steps": 8,
         "eval_every": 12,
@@ -52,14 +67,24 @@ def test_metrics_lines_hold_window_means(tmp_path, monkeypatch):
         "learner": "fake",
         "task": "hopper-m-r",
     }
-    evaluations = []
-    train_module._train_loop(
-        CountingLearner(), NoReplay(), config, tmp_path, evaluations, show_progress=False
-    )
-    lines = [json.loads(x) for x in (tmp_path / "metrics.jsonl").read_text().splitlines()]
-    assert [line["step"] for line in lines] == [4, 8]
-    # steps 1-4 and 5-8: means of 1..4 and 5..8; the every-other metric over its own steps
-    assert [line["loss"] for line in lines] == [2.5, 6.5]
-    assert [line["actor_loss"] for line in lines] == [30.0, 70.0]
-    assert all(line["wall_s"] >= 0 for line in lines)
-    assert [e["step"] for e in evaluations] == [8] and lines[1]["eval_score_mean"] == 1.0
+    group = []
+    for seed in (3, 7):
+        (tmp_path / str(seed)).mkdir()
+        group.append(
+            train_module.SeedRun(seed, {**config, "seed": seed}, tmp_path / str(seed), "fresh")
+        )
+    train_module._train_loop(CountingLearner(), NoReplay(), group, show_progress=False)
+    for k, seed in enumerate((3, 7)):
+        lines = [
+            json.loads(x) for x in (tmp_path / str(seed) / "metrics.jsonl").read_text().splitlines()
+        ]
+        assert [line["step"] for line in lines] == [4, 8]
+        # steps 1-4 and 5-8: means of 1..4 and 5..8; the every-other metric over its own steps
+        assert [line["loss"] for line in lines] == [2.5 + 100 * k, 6.5 + 100 * k]
+        assert [line["actor_loss"] for line in lines] == [30.0 + 100 * k, 70.0 + 100 * k]
+        assert all(line["wall_s"] >= 0 for line in lines)
+        evaluations = group[k].evaluations
+        assert [e["step"] for e in evaluations] == [8]
+        assert lines[1]["eval_score_mean"] == float(seed) and lines[1]["eval_returns"] == [seed]
+    # one checkpoint per seed per log line, each with that seed's own state
+    assert [state["learner"]["seed_index"] for state in saved] == [0, 1, 0, 1]

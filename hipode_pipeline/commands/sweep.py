@@ -21,6 +21,7 @@ from hipode_pipeline.commands.common import (
     user_errors,
 )
 from hipode_pipeline.errors import SettingError
+from hipode_pipeline.seeding import parse_seeds
 from hipode_pipeline.sweep.plan import DEFAULT_TASKS, SweepConfig
 
 DEFAULT_OUT = SweepConfig.out
@@ -28,7 +29,9 @@ EPILOG = (
     "Runs execute in this process (--engine local --workers 1), in local worker processes "
     "(--workers N) or on Ray (--engine ray; a local Ray unless --address names a cluster, whose "
     "nodes need hipode-pipeline installed and must see --out and the dataset root at the same "
-    "paths). Every run is a folder OUT/<task>/<arm>/<learner>-seed<seed>/: rerunning resumes."
+    "paths). Every run is a folder OUT/<task>/<arm>/<learner>-seed<seed>/: rerunning resumes. "
+    "The seeds of an arm train together in one process as one stacked model; "
+    "--seeds-per-process N splits them into processes of at most N seeds (1: one per run)."
 )
 
 
@@ -64,7 +67,8 @@ def sweep_command_for(
             ),
         ] = "td3bc",
         seeds: Annotated[
-            str, typer.Option("--seeds", help="Comma-separated seeds, every arm.")
+            str,
+            typer.Option("--seeds", help="Training seeds, every arm: 0-4, 0,2,5 or 0-2,7."),
         ] = "0,1,2",
         steps: Annotated[
             int | None, typer.Option("--steps", help="Updates per run (default: the budget's).")
@@ -156,8 +160,24 @@ def sweep_command_for(
                 "--address", help="Ray cluster address (engine ray; default: a local Ray)."
             ),
         ] = None,
-        workers: Annotated[int, typer.Option("--workers", help="Parallel runs.")] = 1,
-        threads: Annotated[int, typer.Option("--threads", help="Torch threads per run.")] = 1,
+        workers: Annotated[
+            int,
+            typer.Option(
+                "--workers",
+                help="Parallel processes, each training an arm's seeds (see --seeds-per-process).",
+            ),
+        ] = 1,
+        threads: Annotated[
+            int, typer.Option("--threads", help="Torch threads per process (its seeds share them).")
+        ] = 1,
+        seeds_per_process: Annotated[
+            int | None,
+            typer.Option(
+                "--seeds-per-process",
+                help="Seeds of an arm trained together in one process as one stacked model "
+                "(default: all; fewer spread an arm over more --workers; 1: one process per run).",
+            ),
+        ] = None,
         device: DeviceOption = None,
         out: Annotated[
             Path,
@@ -187,7 +207,7 @@ def sweep_command_for(
         config = SweepConfig(
             tasks=parse_list(tasks, str, "--tasks"),
             learners=parse_list(learners, str, "--learners"),
-            seeds=parse_list(seeds, int, "--seeds"),
+            seeds=parse_seeds(seeds, "--seeds"),
             steps=steps,
             budget=budget,
             eval_every=eval_every,
@@ -207,6 +227,7 @@ def sweep_command_for(
             address=address,
             workers=workers,
             threads=threads,
+            seeds_per_process=seeds_per_process,
             device=device,
             out=out,
             results=results,

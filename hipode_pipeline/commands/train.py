@@ -19,6 +19,7 @@ from hipode_pipeline.commands.common import (
     output_folder,
     user_errors,
 )
+from hipode_pipeline.errors import SettingError
 
 
 @user_errors
@@ -43,6 +44,14 @@ def train_command(
         ),
     ] = None,
     seed: SeedOption = 0,
+    seeds: Annotated[
+        str | None,
+        typer.Option(
+            "--seeds",
+            help="Several training seeds, e.g. 0-4 or 0,2,5: built-in learners train them in "
+            "one process as one stacked model; each seed gets the run folder --seed writes.",
+        ),
+    ] = None,
     eta: Annotated[
         float | None,
         typer.Option(
@@ -99,15 +108,24 @@ def train_command(
     json_output: JsonFlag = False,
 ) -> None:
     """Train an offline learner on the task's data, evaluate it, print its scores (resumes)."""
-    from hipode_pipeline.run_folder import SCORE_COLUMNS, SCORE_TITLE, score_table_rows
-    from hipode_pipeline.train import run_training
+    from hipode_pipeline.run_folder import (
+        SCORE_COLUMNS,
+        SCORE_TITLE,
+        score_table_rows,
+        seeds_summary,
+    )
+    from hipode_pipeline.seeding import parse_seeds
+    from hipode_pipeline.train import train_seeds
 
-    result = run_training(
+    if seeds is not None and seed != 0:
+        raise SettingError("--seed and --seeds: give one of them")
+    seed_list = parse_seeds(seeds) if seeds is not None else [seed]
+    results = train_seeds(
         task,
         learner,
         data,
         steps,
-        seed,
+        seed_list,
         eval_every,
         eval_episodes,
         out,
@@ -124,10 +142,15 @@ def train_command(
         show_progress=not json_output,
     )
     if json_output:
-        console.print_json(result.to_dict())
+        dumped = [result.to_dict() for result in results]
+        console.print_json(dumped[0] if seeds is None else dumped)
         return
-    console.err.print(f"run folder: {result.run_dir}")
-    console.out.print(console.table(SCORE_TITLE, SCORE_COLUMNS, score_table_rows(result)))
+    for result in results:
+        console.err.print(f"run folder: {result.run_dir}")
+    rows = [row for result in results for row in score_table_rows(result)]
+    console.out.print(console.table(SCORE_TITLE, SCORE_COLUMNS, rows))
+    if len(results) > 1:
+        console.out.print(seeds_summary(results))
 
 
 def register(app: typer.Typer) -> None:

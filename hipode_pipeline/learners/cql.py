@@ -3,14 +3,15 @@
 SAC with a conservative term: logsumexp of Q over sampled actions (uniform, policy at s, policy
 at s', importance-weighted) minus Q on the data, weighted by cql_alpha (10, as in the paper's
 runs). Settings follow CORL's CQL (3-layer critics with orthogonal init, automatic entropy,
-10 sampled actions). All sampled actions of a batch go through the twin critics as one
-batched pass, which is what keeps CQL usable on a CPU.
+10 sampled actions). All sampled actions of a batch, of every seed, go through the twin
+critics as one batched pass, which is what keeps CQL usable on a CPU.
 """
 
 from __future__ import annotations
 
 import copy
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -20,10 +21,15 @@ from hipode_pipeline.learners.base import (
     Batch,
     Learner,
     LearnerConfig,
-    TwinCritic,
     adam,
-    orthogonal_init_,
     polyak_,
+    stack_batch,
+)
+from hipode_pipeline.learners.stacked import (
+    StackedMLP,
+    StackedTwinCritic,
+    orthogonal_,
+    xavier_uniform_,
 )
 
 LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
@@ -47,42 +53,40 @@ class CQLConfig(LearnerConfig):
 
 
 class TanhGaussianActor(nn.Module):
-    """MLP -> (mean, log_std) -> tanh-squashed Gaussian; log-probs with the tanh correction."""
+    """K stacked MLPs -> (mean, log_std) -> tanh-squashed Gaussians; log-probs with the tanh
+    correction. The caller draws the noise (one stream per seed)."""
 
     def __init__(
-        self, obs_dim: int, act_dim: int, hidden_dim: int, hidden_layers: int, max_action: float
+        self,
+        obs_dim: int,
+        act_dim: int,
+        hidden_dim: int,
+        hidden_layers: int,
+        max_action: float,
+        generators: Sequence[torch.Generator],
     ):
         super().__init__()
-        layers: list[nn.Module] = []
-        width = obs_dim
-        for _ in range(hidden_layers):
-            layers += [nn.Linear(width, hidden_dim), nn.ReLU()]
-            width = hidden_dim
-        last = nn.Linear(width, 2 * act_dim)
+        self.net = StackedMLP([obs_dim, *([hidden_dim] * hidden_layers), 2 * act_dim], generators)
         # a near-zero last layer starts the policy centred, as CORL does
-        nn.init.xavier_uniform_(last.weight, gain=1e-2)
-        nn.init.zeros_(last.bias)
-        self.net = nn.Sequential(*layers, last)
+        xavier_uniform_(self.net.weights[-1], 1e-2, generators)
+        nn.init.zeros_(self.net.biases[-1])
+        k = len(generators)
         # learnable affine map of the raw log-std, starting at std e^-1 (as CORL's policy does)
-        self.log_std_scale = nn.Parameter(torch.ones(()))
-        self.log_std_offset = nn.Parameter(torch.full((), -1.0))
+        self.log_std_scale = nn.Parameter(torch.ones(k))
+        self.log_std_offset = nn.Parameter(torch.full((k,), -1.0))
         self.max_action = max_action
 
-    def forward(
-        self,
-        obs: torch.Tensor,
-        generator: torch.Generator | None = None,
-        deterministic: bool = False,
-    ):
+    def forward(self, obs: torch.Tensor, eps: torch.Tensor | None = None):
+        """(K, ..., ds) -> actions (K, ..., da) and log-probs (K, ...); deterministic (tanh of
+        the mean, no log-prob) without `eps`, the standard normals of the sample."""
         mean, log_std = self.net(obs).chunk(2, dim=-1)
-        log_std = (self.log_std_scale * log_std + self.log_std_offset).clamp(
-            LOG_STD_MIN, LOG_STD_MAX
-        )
-        if deterministic:
+        per_seed = (-1, *([1] * (log_std.dim() - 1)))
+        log_std = (
+            self.log_std_scale.view(per_seed) * log_std + self.log_std_offset.view(per_seed)
+        ).clamp(LOG_STD_MIN, LOG_STD_MAX)
+        if eps is None:
             return self.max_action * torch.tanh(mean), None
-        std = log_std.exp()
-        eps = torch.randn(mean.shape, generator=generator, device=mean.device)
-        pre_tanh = mean + std * eps
+        pre_tanh = mean + log_std.exp() * eps
         log_prob = (-0.5 * eps.square() - log_std - 0.5 * math.log(2 * math.pi)).sum(-1)
         # log|d tanh(u)/du| = 2 (log 2 - u - softplus(-2u)), the numerically stable form
         log_prob = log_prob - (
@@ -92,7 +96,8 @@ class TanhGaussianActor(nn.Module):
 
 
 class CQL(Learner):
-    """CQL(H) with twin critics, a tanh-Gaussian actor and automatic entropy tuning."""
+    """CQL(H) with twin critics, a tanh-Gaussian actor and automatic entropy tuning, K seeds at
+    once."""
 
     name = "cql"
     config_class = CQLConfig
@@ -104,23 +109,24 @@ class CQL(Learner):
         config: CQLConfig | None = None,
         *,
         device=None,
-        seed: int = 0,
+        seed: int | Sequence[int] = 0,
     ):
         super().__init__(obs_dim, act_dim, config, device=device, seed=seed)
-        c = self.config
+        c, gens = self.config, self.init_generators
         self.actor = TanhGaussianActor(
-            obs_dim, act_dim, c.hidden_dim, c.actor_hidden_layers, c.max_action
+            obs_dim, act_dim, c.hidden_dim, c.actor_hidden_layers, c.max_action, gens
         ).to(self.device)
-        self.critic = TwinCritic(obs_dim, act_dim, c.hidden_dim, n_hidden=c.critic_hidden_layers)
+        self.critic = StackedTwinCritic(
+            obs_dim, act_dim, gens, c.hidden_dim, n_hidden=c.critic_hidden_layers
+        )
         if c.orthogonal_init:
+            last = len(self.critic.weights) - 1
             for i, (w, b) in enumerate(zip(self.critic.weights, self.critic.biases, strict=True)):
-                orthogonal_init_(
-                    w.data, gain=1e-2 if i == len(self.critic.weights) - 1 else math.sqrt(2)
-                )
+                orthogonal_(w.data, 1e-2 if i == last else math.sqrt(2), gens)
                 nn.init.zeros_(b.data)
         self.critic = self.critic.to(self.device)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
-        self.log_alpha = nn.Parameter(torch.zeros((), device=self.device))
+        self.log_alpha = nn.Parameter(torch.zeros(self.n_seeds, device=self.device))
         self.entropy = nn.ParameterDict({"log_alpha": self.log_alpha})
         self.target_entropy = -float(act_dim) if c.target_entropy is None else c.target_entropy
         self.modules = {
@@ -129,6 +135,7 @@ class CQL(Learner):
             "critic_target": self.critic_target,
             "entropy": self.entropy,
         }
+        self.apply_precision()
         self.optimizers = {
             "actor": adam(self.actor.parameters(), c.policy_lr, self.device),
             "critic": adam(self.critic.parameters(), c.critic_lr, self.device),
@@ -136,85 +143,84 @@ class CQL(Learner):
         }
 
     def _policy_actions(self, observations: torch.Tensor) -> torch.Tensor:
-        return self.actor(observations, deterministic=True)[0]
+        return self.actor(observations)[0]
 
     def update(self, batch: Batch) -> dict[str, torch.Tensor]:
-        c, g = self.config, self.generator
+        c = self.config
+        batch = stack_batch(batch, self.n_seeds)
         obs, next_obs, actions = (
             self.normalize(batch.observations),
             self.normalize(batch.next_observations),
             batch.actions,
         )
-        B, da, n = actions.shape[0], self.act_dim, c.cql_n_actions
+        k, b, da, n = self.n_seeds, actions.shape[1], self.act_dim, c.cql_n_actions
         self.step += 1
 
         # actor and temperature (SAC), against the current critics
-        new_actions, log_pi = self.actor(obs, g)
+        new_actions, log_pi = self.actor(obs, self.randn(b, da))
         if c.auto_entropy:
-            alpha_loss = -(self.log_alpha * (log_pi.detach() + self.target_entropy)).mean()
+            alpha_losses = -(self.log_alpha.unsqueeze(1) * (log_pi.detach() + self.target_entropy))
+            alpha_losses = alpha_losses.mean(1)
             alpha = self.log_alpha.detach().exp()
         else:
-            alpha_loss, alpha = (
-                torch.zeros((), device=self.device),
-                torch.ones((), device=self.device),
-            )
-        q_new = self.critic(obs, new_actions).amin(0)
-        actor_loss = (alpha * log_pi - q_new).mean()
+            alpha_losses = torch.zeros(k, device=self.device)
+            alpha = torch.ones(k, device=self.device)
+        q_new = self.critic(obs, new_actions).amin(1)  # (K, B)
+        actor_losses = (alpha.unsqueeze(1) * log_pi - q_new).mean(1)
 
         # TD target
         with torch.no_grad():
-            next_actions, next_log_pi = self.actor(next_obs, g)
-            target_q = self.critic_target(next_obs, next_actions).amin(0)
+            next_actions, next_log_pi = self.actor(next_obs, self.randn(b, da))
+            target_q = self.critic_target(next_obs, next_actions).amin(1)
             if c.backup_entropy:
-                target_q = target_q - alpha * next_log_pi
+                target_q = target_q - alpha.unsqueeze(1) * next_log_pi
             target = batch.rewards + (1.0 - batch.dones) * c.discount * target_q
 
         # conservative term: uniform, pi(.|s) and pi(.|s') proposals, all scored at s in one pass
         with torch.no_grad():
-            random_actions = torch.empty((B, n, da), device=self.device).uniform_(
-                -c.max_action, c.max_action, generator=g
-            )
-            both = torch.cat([obs, next_obs]).unsqueeze(1).expand(-1, n, -1)
-            sampled, sampled_log_pi = self.actor(both, g)
-            current_actions, next_proposals = sampled.split(B)
-            current_log_pi, next_log_pi_s = sampled_log_pi.split(B)
+            random_actions = self.uniform(-c.max_action, c.max_action, b, n, da)
+            both = torch.cat([obs, next_obs], dim=1).unsqueeze(2).expand(-1, -1, n, -1)
+            sampled, sampled_log_pi = self.actor(both, self.randn(2 * b, n, da))
+            current_actions, next_proposals = sampled.split(b, dim=1)
+            current_log_pi, next_log_pi_s = sampled_log_pi.split(b, dim=1)
         proposals = torch.cat(
-            [actions.unsqueeze(1), random_actions, next_proposals, current_actions], dim=1
+            [actions.unsqueeze(2), random_actions, next_proposals, current_actions], dim=2
         )
-        q_all = self.critic(obs.unsqueeze(1).expand(-1, 1 + 3 * n, -1), proposals)  # (2, B, 1 + 3n)
-        q_data = q_all[:, :, 0]
+        # (K, 2, B, 1 + 3n)
+        q_all = self.critic(obs.unsqueeze(2).expand(-1, -1, 1 + 3 * n, -1), proposals)
+        q_data = q_all[..., 0]
         # every proposal's log density in action units: the policy's is of tanh(u), scaled
         random_density = da * math.log(0.5 / c.max_action)
         to_action_units = da * math.log(c.max_action)
         log_density = torch.cat(
             [
-                torch.full((B, n), random_density, device=self.device),
+                torch.full((k, b, n), random_density, device=self.device),
                 next_log_pi_s - to_action_units,
                 current_log_pi - to_action_units,
             ],
-            dim=1,
-        )
-        ood = torch.logsumexp((q_all[:, :, 1:] - log_density) / c.cql_temp, dim=-1) * c.cql_temp
-        cql_gap = (ood - q_data).mean(1)  # per critic
-        td_loss = (q_data - target).square().mean(1)
-        critic_loss = (td_loss + c.cql_alpha * cql_gap).sum()
+            dim=2,
+        ).unsqueeze(1)
+        ood = torch.logsumexp((q_all[..., 1:] - log_density) / c.cql_temp, dim=-1) * c.cql_temp
+        cql_gap = (ood - q_data).mean(2)  # (K, 2): per seed, per critic
+        td_loss = (q_data - target.unsqueeze(1)).square().mean(2)
+        critic_losses = (td_loss + c.cql_alpha * cql_gap).sum(1)
 
         if c.auto_entropy:
             self.optimizers["entropy"].zero_grad(set_to_none=True)
-            alpha_loss.backward()
+            alpha_losses.sum().backward()
             self.optimizers["entropy"].step()
         self.optimizers["actor"].zero_grad(set_to_none=True)
-        actor_loss.backward(inputs=list(self.actor.parameters()))
+        actor_losses.sum().backward(inputs=list(self.actor.parameters()))
         self.optimizers["actor"].step()
         self.optimizers["critic"].zero_grad(set_to_none=True)
-        critic_loss.backward()
+        critic_losses.sum().backward()
         self.optimizers["critic"].step()
         polyak_(self.critic_target, self.critic, c.tau)
         return {
-            "critic_loss": critic_loss.detach(),
-            "td_loss": td_loss.detach().sum(),
-            "cql_gap": cql_gap.detach().mean(),
-            "actor_loss": actor_loss.detach(),
+            "critic_loss": critic_losses.detach(),
+            "td_loss": td_loss.detach().sum(1),
+            "cql_gap": cql_gap.detach().mean(1),
+            "actor_loss": actor_losses.detach(),
             "alpha": alpha.detach(),
-            "q_mean": q_data.detach().mean(),
+            "q_mean": q_data.detach().mean((1, 2)),
         }

@@ -10,6 +10,7 @@ for locomotion rewards scaled by 1000 / (max − min episode return) of the real
 from __future__ import annotations
 
 import copy
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -18,14 +19,14 @@ from torch.optim.lr_scheduler import CosineAnnealingLR
 
 from hipode_pipeline.data.transitions import Transitions
 from hipode_pipeline.learners.base import (
-    MLP,
     Batch,
     Learner,
     LearnerConfig,
-    TwinCritic,
     adam,
     polyak_,
+    stack_batch,
 )
+from hipode_pipeline.learners.stacked import StackedMLP, StackedTwinCritic
 
 LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
 
@@ -47,13 +48,14 @@ class IQLConfig(LearnerConfig):
 
 
 def expectile_loss(diff: torch.Tensor, expectile: float) -> torch.Tensor:
-    """Asymmetric L2: weight `expectile` above zero, 1 - expectile below."""
+    """Asymmetric L2 (weight `expectile` above zero, 1 - expectile below), mean over the last
+    axis: one loss per seed."""
     weight = torch.where(diff < 0, 1.0 - expectile, expectile)
-    return (weight * diff.square()).mean()
+    return (weight * diff.square()).mean(-1)
 
 
 class IQL(Learner):
-    """IQL with twin Q, V and a tanh-mean Gaussian (or deterministic) actor."""
+    """IQL with twin Q, V and a tanh-mean Gaussian (or deterministic) actor, K seeds at once."""
 
     name = "iql"
     config_class = IQLConfig
@@ -65,16 +67,16 @@ class IQL(Learner):
         config: IQLConfig | None = None,
         *,
         device=None,
-        seed: int = 0,
+        seed: int | Sequence[int] = 0,
     ):
         super().__init__(obs_dim, act_dim, config, device=device, seed=seed)
-        c = self.config
+        c, gens = self.config, self.init_generators
         hidden = [c.hidden_dim, c.hidden_dim]
-        self.actor = MLP([obs_dim, *hidden, act_dim], nn.Tanh()).to(self.device)
-        self.log_std = nn.Parameter(torch.zeros(act_dim, device=self.device))
-        self.critic = TwinCritic(obs_dim, act_dim, c.hidden_dim).to(self.device)
+        self.actor = StackedMLP([obs_dim, *hidden, act_dim], gens, nn.Tanh()).to(self.device)
+        self.log_std = nn.Parameter(torch.zeros(self.n_seeds, act_dim, device=self.device))
+        self.critic = StackedTwinCritic(obs_dim, act_dim, gens, c.hidden_dim).to(self.device)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
-        self.value = MLP([obs_dim, *hidden, 1]).to(self.device)
+        self.value = StackedMLP([obs_dim, *hidden, 1], gens).to(self.device)
         self.actor_params = nn.ParameterDict({"log_std": self.log_std})
         self.modules = {
             "actor": self.actor,
@@ -83,6 +85,7 @@ class IQL(Learner):
             "critic_target": self.critic_target,
             "value": self.value,
         }
+        self.apply_precision()
         actor_params = list(self.actor.parameters()) + (
             [] if c.deterministic_policy else [self.log_std]
         )
@@ -114,25 +117,26 @@ class IQL(Learner):
 
     def update(self, batch: Batch) -> dict[str, torch.Tensor]:
         c = self.config
+        batch = stack_batch(batch, self.n_seeds)
         obs, next_obs = self.normalize(batch.observations), self.normalize(batch.next_observations)
         rewards = batch.rewards * self.reward_scale
         self.step += 1
         # V: expectile of the target twin-Q minimum; V(s') for Q's target is taken before V moves
         with torch.no_grad():
-            target_q = self.critic_target(obs, batch.actions).amin(0)
+            target_q = self.critic_target(obs, batch.actions).amin(1)  # (K, B)
             next_v = self.value(next_obs).squeeze(-1)
         v = self.value(obs).squeeze(-1)
         advantage = target_q - v
-        value_loss = expectile_loss(advantage, c.expectile)
+        value_losses = expectile_loss(advantage, c.expectile)
         self.optimizers["value"].zero_grad(set_to_none=True)
-        value_loss.backward()
+        value_losses.sum().backward()
         self.optimizers["value"].step()
-        # Q: TD(0) towards r + γ V(s'), both critics in one batched pass
+        # Q: TD(0) towards r + γ V(s'), both critics of every seed in one batched pass
         target = rewards + (1.0 - batch.dones) * c.discount * next_v
-        q = self.critic(obs, batch.actions)
-        critic_loss = (q - target).square().mean(1).sum()
+        q = self.critic(obs, batch.actions)  # (K, 2, B)
+        critic_losses = (q - target.unsqueeze(1)).square().mean(2).sum(1)
         self.optimizers["critic"].zero_grad(set_to_none=True)
-        critic_loss.backward()
+        critic_losses.sum().backward()
         self.optimizers["critic"].step()
         polyak_(self.critic_target, self.critic, c.tau)
         # actor: advantage-weighted regression
@@ -141,19 +145,19 @@ class IQL(Learner):
         if c.deterministic_policy:
             bc_losses = (mean - batch.actions).square().sum(-1)
         else:
-            log_std = self.log_std.clamp(LOG_STD_MIN, LOG_STD_MAX)
+            log_std = self.log_std.clamp(LOG_STD_MIN, LOG_STD_MAX).unsqueeze(1)
             log_prob = (
                 torch.distributions.Normal(mean, log_std.exp()).log_prob(batch.actions).sum(-1)
             )
             bc_losses = -log_prob
-        actor_loss = (weights * bc_losses).mean()
+        actor_losses = (weights * bc_losses).mean(1)
         self.optimizers["actor"].zero_grad(set_to_none=True)
-        actor_loss.backward()
+        actor_losses.sum().backward()
         self.optimizers["actor"].step()
         self.schedulers["actor"].step()
         return {
-            "value_loss": value_loss.detach(),
-            "critic_loss": critic_loss.detach(),
-            "actor_loss": actor_loss.detach(),
-            "q_mean": q.detach().mean(),
+            "value_loss": value_losses.detach(),
+            "critic_loss": critic_losses.detach(),
+            "actor_loss": actor_losses.detach(),
+            "q_mean": q.detach().mean((1, 2)),
         }

@@ -2,7 +2,8 @@
 
 Every (task, learner, arm, seed) is one run folder under --out
 (<out>/<task>/<arm>/<learner>-seed<seed>/), so a sweep resumes where it stopped: finished runs
-are read back, unfinished ones continue from their checkpoint.
+are read back, unfinished ones continue from their checkpoint. The runs of an arm that differ
+only in their seed train together in one process (--seeds-per-process caps how many).
 """
 
 from __future__ import annotations
@@ -20,7 +21,14 @@ from hipode_pipeline.files import write_json_atomic, write_text_atomic
 from hipode_pipeline.paths import use_datasets_root
 from hipode_pipeline.sweep.engines import read_finished, run_local, run_ray
 from hipode_pipeline.sweep.machine import LoadSampler
-from hipode_pipeline.sweep.plan import ENGINES, SweepConfig, resolve_budget, run_specs
+from hipode_pipeline.sweep.plan import (
+    ENGINES,
+    SweepConfig,
+    check_seeds_per_process,
+    resolve_budget,
+    run_specs,
+    run_units,
+)
 from hipode_pipeline.sweep.report import QualityReport, curve_plot, markdown, summarize
 
 
@@ -72,6 +80,8 @@ def command_line(config: SweepConfig) -> str:
     if config.profile != "full":
         args += ["--profile", config.profile]
     args += ["--engine", config.engine, "--workers", str(config.workers)]
+    if config.seeds_per_process is not None:
+        args += ["--seeds-per-process", str(config.seeds_per_process)]
     return shlex.join(args)
 
 
@@ -85,6 +95,9 @@ def run_sweep(config: SweepConfig) -> QualityReport:
         raise SettingError(f"--engine: expected one of {ENGINES}, found {config.engine!r}")
     if config.workers < 1 or config.threads < 1 or not config.seeds or not config.tasks:
         raise SettingError("--workers, --threads: expected ≥ 1; --seeds, --tasks: not empty")
+    if len(set(config.seeds)) != len(config.seeds):
+        raise SettingError(f"--seeds: expected each seed once, found {config.seeds}")
+    check_seeds_per_process(config.seeds_per_process)
     root = use_datasets_root(config.root)
     config.out = config.out.resolve()
     steps, eval_every, eval_episodes, budget = resolve_budget(config)
@@ -94,12 +107,19 @@ def run_sweep(config: SweepConfig) -> QualityReport:
     runs = []
     with LoadSampler() as load, console.progress(disable=not config.show_progress) as prog:
         bar = prog.add_task("sweep runs", total=len(specs), rate="", info="")
+        units = run_units(specs, config.seeds_per_process)
+        if not config.report_only and len(units) < config.workers:
+            console.err.print(
+                f"[yellow]note:[/] {len(units)} unit(s) of seeds for --workers "
+                f"{config.workers}: some workers stay idle; --seeds-per-process 1 gives one "
+                "unit per run"
+            )
         if config.report_only:
             executed = read_finished(specs)
         elif config.engine == "local":
-            executed = run_local(specs, config.workers)
+            executed = run_local(units, config.workers)
         else:
-            executed = run_ray(specs, config.address, config.workers)
+            executed = run_ray(units, config.address, config.workers)
         for record in executed:
             key = keys[record["learner"], record["arm"]]
             runs.append({**record, "key": key, "run_dir": display_path(record["run_dir"])})
@@ -131,6 +151,7 @@ def run_sweep(config: SweepConfig) -> QualityReport:
             "engine": config.engine + (f" ({config.address})" if config.address else ""),
             "workers": config.workers,
             "threads": config.threads,
+            "seeds_per_process": config.seeds_per_process,
             "load_during": load.stats(),
         },
         arms=arms,

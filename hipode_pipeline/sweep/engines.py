@@ -1,6 +1,7 @@
-"""Where a sweep's runs execute: in this process (one worker), in fresh local processes
+"""Where a sweep's units execute: in this process (one worker), in fresh local processes
 (--workers N) or as Ray tasks (--engine ray, a local Ray unless --address names a cluster).
-Each yields the runs' records as they finish."""
+A unit is the runs of one arm that differ only in their seed, trained together; each engine
+yields the runs' records as their units finish."""
 
 from __future__ import annotations
 
@@ -10,17 +11,23 @@ from typing import Any
 
 from hipode_pipeline import console
 from hipode_pipeline.errors import HipodeError
-from hipode_pipeline.sweep.worker import RunSpec, finished_scores, run_one, run_record
+from hipode_pipeline.sweep.worker import RunSpec, finished_scores, run_record, run_unit
 
 
-def run_local(specs: list[RunSpec], workers: int) -> Iterator[dict[str, Any]]:
-    """In this process (one worker) or in fresh spawned processes, one per run."""
+def unit_dicts(units: list[list[RunSpec]]) -> list[list[dict[str, Any]]]:
+    """The units as plain dicts, what a worker process or Ray task receives."""
+    return [[spec.to_dict() for spec in unit] for unit in units]
+
+
+def run_local(units: list[list[RunSpec]], workers: int) -> Iterator[dict[str, Any]]:
+    """In this process (one worker) or in fresh spawned processes, one per unit."""
     if workers <= 1:
-        for spec in specs:
-            yield run_one(spec.to_dict())
+        for unit in unit_dicts(units):
+            yield from run_unit(unit)
         return
     with get_context("spawn").Pool(workers, maxtasksperchild=1) as pool:
-        yield from pool.imap_unordered(run_one, [spec.to_dict() for spec in specs])
+        for records in pool.imap_unordered(run_unit, unit_dicts(units)):
+            yield from records
 
 
 def read_finished(specs: list[RunSpec]) -> Iterator[dict[str, Any]]:
@@ -36,10 +43,12 @@ def read_finished(specs: list[RunSpec]) -> Iterator[dict[str, Any]]:
         console.err.print(f"[yellow]not finished at this budget, left out: {', '.join(missing)}[/]")
 
 
-def run_ray(specs: list[RunSpec], address: str | None, workers: int) -> Iterator[dict[str, Any]]:
-    """One Ray task per run (1 CPU each); a local Ray with `workers` CPUs unless `address`.
+def run_ray(
+    units: list[list[RunSpec]], address: str | None, workers: int
+) -> Iterator[dict[str, Any]]:
+    """One Ray task per unit (1 CPU each); a local Ray with `workers` CPUs unless `address`.
     A cluster's nodes need hipode-pipeline installed and --out and the dataset root at the
-    same paths: a task carries only its RunSpec."""
+    same paths: a task carries only its RunSpecs."""
     try:
         import ray
     except ImportError:
@@ -48,7 +57,7 @@ def run_ray(specs: list[RunSpec], address: str | None, workers: int) -> Iterator
             "`pip install 'hipode-pipeline[ray]'` (ray[default]>=2.40) or pass --engine local"
         ) from None
     # busy-waiting OpenMP threads would starve the other runs on a node
-    env_vars = {"OMP_WAIT_POLICY": "PASSIVE", "MINARI_DATASETS_PATH": specs[0].root}
+    env_vars = {"OMP_WAIT_POLICY": "PASSIVE", "MINARI_DATASETS_PATH": units[0][0].root}
     started_here = not ray.is_initialized()
     if started_here:
         ray.init(
@@ -59,11 +68,11 @@ def run_ray(specs: list[RunSpec], address: str | None, workers: int) -> Iterator
             runtime_env={"env_vars": env_vars},
         )
     try:
-        remote = ray.remote(num_cpus=1, max_retries=0)(run_one)
-        pending = [remote.remote(spec.to_dict()) for spec in specs]
+        remote = ray.remote(num_cpus=1, max_retries=0)(run_unit)
+        pending = [remote.remote(unit) for unit in unit_dicts(units)]
         while pending:
             done, pending = ray.wait(pending, num_returns=1)
-            yield ray.get(done[0])
+            yield from ray.get(done[0])
     finally:
         if started_here:
             ray.shutdown()

@@ -7,6 +7,9 @@ built with another negative-sampling weight α (Table 13), uniform candidates in
 bounding box instead of the state-transition model (Table 12), another selecting rate λ or
 value-penalty form, another stage-one seed, or train on the union sampled uniformly instead of
 η·B synthetic rows per batch.
+
+The runs of one (task, learner, arm) that differ only in their training seed form units, each
+trained in one process as one stacked model (`run_units`).
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ import numpy as np
 from hipode_pipeline import console
 from hipode_pipeline.data.transitions import SourceInfo, Transitions
 from hipode_pipeline.errors import DatasetNotFoundError, HipodeError, OverwriteError, SettingError
-from hipode_pipeline.sweep.worker import RunSpec
+from hipode_pipeline.sweep.worker import RunSpec, unit_key
 from hipode_pipeline.tasks import LEARNERS, Task, get_task
 
 DEFAULT_TASKS = ("hopper-m-r", "walker2d-m-r", "halfcheetah-m-r")
@@ -68,8 +71,9 @@ class SweepConfig:
     artifact_seed: int = 0  # seed of artifacts the sweep builds (one per task and arm)
     engine: str = "local"  # local | ray
     address: str | None = None  # Ray cluster address; None: start a local Ray
-    workers: int = 1  # parallel runs (local processes, or the local Ray's CPUs)
-    threads: int = 1  # torch threads per run
+    workers: int = 1  # parallel units (local processes, or the local Ray's CPUs)
+    threads: int = 1  # torch threads per unit (its seeds share them)
+    seeds_per_process: int | None = None  # seeds trained together per unit; None: all of them
     device: str | None = None  # torch device; None: CUDA when present
     out: Path = Path("runs") / "sweep"  # run folders and ablation artifacts
     results: Path | None = None  # quality.md / .json / .png; None: <out>/report
@@ -382,3 +386,34 @@ def run_specs(
                         )
                     )
     return specs, described
+
+
+def check_seeds_per_process(value: int | None) -> None:
+    """None (all seeds of an arm in one unit) or a count train_seeds accepts."""
+    from hipode_pipeline.train import MAX_SEEDS
+
+    if value is not None and (isinstance(value, bool) or not 1 <= value <= MAX_SEEDS):
+        raise SettingError(
+            f"--seeds-per-process: expected an integer in [1, {MAX_SEEDS}] (1: one process per "
+            f"run; default: all seeds of an arm together), found {value!r}"
+        )
+
+
+def run_units(specs: list[RunSpec], seeds_per_process: int | None = None) -> list[list[RunSpec]]:
+    """The runs grouped into units: runs that differ only in their seed, at most
+    `seeds_per_process` of them per unit (None: all, up to train_seeds' limit). Units keep the
+    plan's order: the first seeds of every arm before the next ones, so paired runs finish close
+    together."""
+    from hipode_pipeline.train import MAX_SEEDS
+
+    check_seeds_per_process(seeds_per_process)
+    size = seeds_per_process or MAX_SEEDS
+    by_unit: dict[RunSpec, list[RunSpec]] = {}
+    for spec in specs:
+        by_unit.setdefault(unit_key(spec), []).append(spec)
+    chunks = [
+        (start // size, order, runs[start : start + size])
+        for order, runs in enumerate(by_unit.values())
+        for start in range(0, len(runs), size)
+    ]
+    return [runs for _, _, runs in sorted(chunks, key=lambda chunk: chunk[:2])]

@@ -236,6 +236,14 @@ def table_title(report: QualityReport) -> str:
     return f"{learner_text(report.learners)} final normalized score"
 
 
+def together(machine: dict[str, Any]) -> str:
+    """How many seeds of an arm one process trains as one stacked model, as the report says it."""
+    per_process = machine.get("seeds_per_process")
+    if per_process is None:
+        return "all seeds of an arm"
+    return "one seed" if per_process == 1 else f"up to {per_process} seeds of an arm"
+
+
 def markdown(report: QualityReport) -> str:
     """quality.md: command, budget, machine and load, the table, the curves."""
     budget, machine = report.budget, report.machine
@@ -262,7 +270,9 @@ def markdown(report: QualityReport) -> str:
         "",
         f"Machine: {machine['platform']}, {machine['cpu_count']} cores, torch "
         f"{machine['torch']}, device {machine['device']}, engine {machine['engine']} with "
-        f"{machine['workers']} parallel run(s) of {machine['threads']} torch thread(s). "
+        f"{machine['workers']} parallel process(es) of {machine['threads']} torch thread(s)"
+        + ("" if budget.get("report_only") else f", each training {together(machine)} together")
+        + ". "
         "The machine is shared with other jobs: 1-minute load average during the sweep "
         f"min {load['min']:.2f} / mean {load['mean']:.2f} / max {load['max']:.2f} "
         f"({load['samples']} samples)"

@@ -1,18 +1,22 @@
-"""One (task, learner, arm, seed) run of a sweep: `run_training` in whatever process executes it
-(the driver, a local worker process or a Ray worker).
+"""One unit of a sweep: the runs of one (task, learner, arm, budget) that differ only in their
+training seed, trained together by `train_seeds` as one stacked model in whatever process
+executes the unit (the driver, a local worker process or a Ray worker).
 
-Worker processes import only this module and the library; the driver sends a plain dict
-(RunSpec.to_dict) and gets a plain dict back (the run's record). A run whose folder already
+Worker processes import only this module and the library; the driver sends plain dicts
+(RunSpec.to_dict) and gets plain dicts back (one record per run). A run whose folder already
 holds a finished run with the same settings is not trained again: its scores are read back,
 which is what makes a sweep resumable across sessions.
 """
 
 from __future__ import annotations
 
+import json
 import os
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
+
+from hipode_pipeline.errors import HipodeError
 
 
 @dataclass(frozen=True)
@@ -99,43 +103,81 @@ def run_record(spec: RunSpec, scores: dict[str, Any], status: str) -> dict[str, 
         "updates_per_second": scores.get("updates_per_second"),
         "run_dir": str(run_dir),
         "status": status,
+        "seeds_trained_together": trained_together(run_dir),
         "worker_pid": os.getpid(),
     }
 
 
-def run_one(spec_dict: dict[str, Any]) -> dict[str, Any]:
-    """Execute one run (or read back its finished result) and return its record."""
+def trained_together(run_dir: Path) -> list[int] | None:
+    """The seeds the run's last training session stacked with it (config.json); None if the
+    folder does not record them."""
+    try:
+        seeds = json.loads((run_dir / "config.json").read_text()).get("seeds_trained_together")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return seeds if isinstance(seeds, list) else None
+
+
+def unit_key(spec: RunSpec) -> RunSpec:
+    """What the runs of one unit share: everything but the training seed."""
+    return replace(spec, seed=0)
+
+
+def run_unit(spec_dicts: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Execute one unit: read back its finished runs, train the others in one `train_seeds`
+    call, and return one record per run in the order given."""
+    specs = [RunSpec(**spec_dict) for spec_dict in spec_dicts]
+    if not specs or len({unit_key(spec) for spec in specs}) != 1:
+        raise HipodeError(
+            "sweep unit: expected runs that differ only in their seed, found "
+            f"{[(s.task, s.learner, s.arm, s.seed) for s in specs]}"
+        )
+    records: dict[int, dict[str, Any]] = {}
+    pending = []
+    for spec in specs:
+        scores = finished_scores(spec)
+        if scores is None:
+            pending.append(spec)
+        else:
+            records[spec.seed] = run_record(spec, scores, "finished earlier")
+    if pending:
+        records.update(train_unit(pending))
+    return [records[spec.seed] for spec in specs]
+
+
+def train_unit(specs: list[RunSpec]) -> dict[int, dict[str, Any]]:
+    """The unit's unfinished runs trained side by side; each seed's record by seed."""
     import torch
 
-    from hipode_pipeline.train import run_training
+    from hipode_pipeline.train import train_seeds
 
-    spec = RunSpec(**spec_dict)
-    scores = finished_scores(spec)
-    if scores is not None:
-        return run_record(spec, scores, "finished earlier")
+    spec = specs[0]
     torch.set_num_threads(spec.threads)
-    result = run_training(
+    results = train_seeds(
         spec.task,
         spec.learner,
         data=spec.data,
         steps=spec.steps,
-        seed=spec.seed,
+        seeds=[s.seed for s in specs],
         eval_every=spec.eval_every,
         eval_episodes=spec.eval_episodes,
         source=spec.source,
         artifact=None if spec.artifact is None else Path(spec.artifact),
-        eta=spec.eta,
+        eta=None if spec.data == "source" else spec.eta,  # source runs take no η (no note)
         mixing=spec.mixing,
         device=spec.device,
         root=Path(spec.root),
-        run_dir=spec.run_dir(),
+        run_dirs=[s.run_dir() for s in specs],
         force=spec.force,
         show_progress=False,  # the driver shows one bar over all runs
     )
-    if result.finished_earlier:
-        status = "finished earlier"
-    elif result.resumed_from:
-        status = f"resumed from step {result.resumed_from}"
-    else:
-        status = "trained"
-    return run_record(spec, result.to_dict(), status)
+    records = {}
+    for run_spec, result in zip(specs, results, strict=True):
+        if result.finished_earlier:
+            status = "finished earlier"
+        elif result.resumed_from:
+            status = f"resumed from step {result.resumed_from}"
+        else:
+            status = "trained"
+        records[run_spec.seed] = run_record(run_spec, result.to_dict(), status)
+    return records
