@@ -22,6 +22,7 @@ import torch
 from hipode_pipeline import console
 from hipode_pipeline.artifact import SCHEMA_VERSION, read_artifact, write_artifact
 from hipode_pipeline.contract import ArtifactSettings, default_artifact_path, table_row
+from hipode_pipeline.data.bands import check_source_band
 from hipode_pipeline.data.load import load_source
 from hipode_pipeline.data.transitions import SourceInfo, Transitions
 from hipode_pipeline.device import select_device
@@ -82,6 +83,9 @@ class AugmentSummary:
     # the learner whose table row gave the defaults: {"learner", "table", "from_paper"}
     table_row: dict[str, Any] = field(default_factory=dict)
     reused_artifact: bool = False  # the file already matched this request and was kept as is
+    # the source's behaviour policies against their bands (data.bands); None: none recorded
+    source_band: dict[str, Any] | None = None
+    allowed_off_band: bool = False  # built on an off-band source because --allow-off-band
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -174,6 +178,7 @@ def run_augment(
     force: bool = False,
     device: str | None = None,
     show_progress: bool = True,
+    allow_off_band: bool = False,
 ) -> AugmentSummary:
     """Stage one end to end: load (collecting first if the task's own dataset is missing), train
     or reuse the generators, generate, write the artifact and its summary JSON.
@@ -214,7 +219,8 @@ def run_augment(
         out_given = out is not None
         if out_given:
             check_output_file(Path(out), "--out")
-        transitions, info = _load_or_collect(task, source, root, show_progress)
+        transitions, info = _load_or_collect(task, source, root, show_progress, allow_off_band)
+        band = check_source_band(info.metadata, str(info.id), allow_off_band=allow_off_band)
         env_id = info.env_id or task.env_id
         # the data must fit the task's env before minutes of training: rule, layout and row count
         termination_rule(env_id, transitions.obs_dim, origin=f"source {info.id} (env {env_id})")
@@ -313,6 +319,8 @@ def run_augment(
             "device": str(generators.device),
             "profile": profile,
             "table_row": table_row(task, learner),
+            "source_band": band,
+            "allowed_off_band": bool(band and band["in_band"] is False),
         }
         manifest = _manifest(
             task,
@@ -369,7 +377,7 @@ def summary_path(artifact: Path) -> Path:
 
 
 def _load_or_collect(
-    task: Task, source: str | None, root: Path, show_progress: bool
+    task: Task, source: str | None, root: Path, show_progress: bool, allow_off_band: bool
 ) -> tuple[Transitions, SourceInfo]:
     spec = source or task.name
     try:
@@ -385,7 +393,7 @@ def _load_or_collect(
         f"[yellow]source {task.local_dataset_id} is not under {root}: collecting it first "
         f"(hipode collect {task.name}); this takes a while once[/]"
     )
-    collect(task, root=root, show_progress=show_progress)
+    collect(task, root=root, show_progress=show_progress, allow_off_band=allow_off_band)
     return load_source(spec, root, task=task)
 
 

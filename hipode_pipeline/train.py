@@ -22,6 +22,7 @@ import torch
 
 from hipode_pipeline import console
 from hipode_pipeline.contract import find_artifact, table_learner, table_row
+from hipode_pipeline.data.bands import check_source_band
 from hipode_pipeline.data.load import load_source
 from hipode_pipeline.device import select_device
 from hipode_pipeline.errors import HipodeError, SettingError
@@ -66,6 +67,7 @@ class RunData:
     merged: MergedData
     artifact_choice: str  # "table": found by the learner's table row; "given": --artifact; "none"
     artifact_eta: float | None  # the synthetic rate the artifact was built with, if recorded
+    source_band: dict[str, Any] | None = None  # the source's band verdict (data.bands)
 
 
 def train_settings() -> dict[str, Any]:
@@ -82,14 +84,16 @@ def resolve_data(
     artifact: Path | None,
     artifact_seed: int = 0,
     root: Path | None = None,
+    allow_off_band: bool = False,
 ) -> RunData:
     """The source (the task's collected dataset unless `source` names another) and, for
     data=merged, the artifact the learner's table row asks for (or `artifact`), checked."""
     if data not in DATA_CHOICES:
         raise HipodeError(f"--data: expected one of {DATA_CHOICES}, found {data!r}")
     loaded = load_source(source or task.name, root, task=task)
+    band = check_source_band(loaded[1].metadata, str(loaded[1].id), allow_off_band=allow_off_band)
     if data == "source":
-        return RunData(load_merged("", None, loaded=loaded), "none", None)
+        return RunData(load_merged("", None, loaded=loaded), "none", None, band)
     choice = "given"
     if artifact is None:
         info = loaded[1]
@@ -114,7 +118,7 @@ def resolve_data(
         or not 0 < artifact_eta <= MAX_ETA
     ):
         artifact_eta = None
-    return RunData(merged, choice, None if artifact_eta is None else float(artifact_eta))
+    return RunData(merged, choice, None if artifact_eta is None else float(artifact_eta), band)
 
 
 def batch_eta(
@@ -282,6 +286,7 @@ def train_seeds(
     run_dirs: Sequence[Path] | None = None,
     force: bool = False,
     show_progress: bool = True,
+    allow_off_band: bool = False,
 ) -> list[TrainResult]:
     """Train `learner` on `task`'s data (merged: source ⊕ its artifact; source: η = 0) for each
     of `seeds`, evaluate, and write one run folder per seed, the folder a run of that seed
@@ -334,6 +339,7 @@ def train_seeds(
         artifact=artifact,
         artifact_seed=artifact_seed,
         root=root,
+        allow_off_band=allow_off_band,
     )
     merged = run_data.merged
     params = task_obj.augment_params(table_learner(learner))
@@ -392,6 +398,8 @@ def train_seeds(
         else None,
         "artifact_hyper_parameters": _scalars(manifest.get("hyper_parameters")),
         "table_row": table_row(task_obj, learner),
+        "source_band": run_data.source_band,
+        "allowed_off_band": bool(run_data.source_band and run_data.source_band["in_band"] is False),
         "device": str(device_obj),
         "torch_threads": torch.get_num_threads(),
         "versions": package_versions(),

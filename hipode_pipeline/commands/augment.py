@@ -11,6 +11,7 @@ import typer
 from hipode_pipeline import console
 from hipode_pipeline.augment import run_augment
 from hipode_pipeline.commands.common import (
+    AllowOffBandFlag,
     DeviceOption,
     ForceFlag,
     JsonFlag,
@@ -117,6 +118,7 @@ def augment_command(
     root: RootOption = None,
     device: DeviceOption = None,
     force: ForceFlag = False,
+    allow_off_band: AllowOffBandFlag = False,
     json_output: JsonFlag = False,
 ) -> None:
     """Train HIPODE's five generators on the source and write the synthetic dataset file."""
@@ -138,6 +140,7 @@ def augment_command(
         out=out,
         root=root,
         force=force,
+        allow_off_band=allow_off_band,
         device=device,
         show_progress=True,
     )

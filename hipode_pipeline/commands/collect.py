@@ -7,7 +7,14 @@ from typing import Annotated
 import typer
 
 from hipode_pipeline import console
-from hipode_pipeline.commands.common import ForceFlag, JsonFlag, RootOption, SeedOption, user_errors
+from hipode_pipeline.commands.common import (
+    AllowOffBandFlag,
+    ForceFlag,
+    JsonFlag,
+    RootOption,
+    SeedOption,
+    user_errors,
+)
 from hipode_pipeline.data.collect import collect
 from hipode_pipeline.tasks import get_task
 
@@ -29,6 +36,7 @@ def collect_command(
     root: RootOption = None,
     profile: ProfileOption = "full",
     force: ForceFlag = False,
+    allow_off_band: AllowOffBandFlag = False,
     json_output: JsonFlag = False,
 ) -> None:
     """Build a D4RL-style MuJoCo dataset here as the Minari dataset local/<env>/<kind>-v0.
@@ -43,6 +51,7 @@ def collect_command(
         profile=profile,
         force=force,
         show_progress=not json_output,
+        allow_off_band=allow_off_band,
     )
     if json_output:
         console.print_json(result.to_dict())
@@ -61,12 +70,33 @@ def collect_command(
             result.episodes,
             ", ".join(f"{p} {result.policy_returns[p]:,.1f}" for p in policies) or "random",
             ", ".join(f"{result.normalized_scores[p]:.1f}" for p in policies) or "",
+            band_text(result.band),
             f"{result.seconds:,.1f} s",
         ]
         for dataset_id in result.dataset_ids
     ]
-    columns = ["dataset", "transitions", "episodes", "behaviour return", "normalized", "wall time"]
+    columns = [
+        "dataset",
+        "transitions",
+        "episodes",
+        "behaviour return",
+        "normalized",
+        "band",
+        "wall time",
+    ]
     console.out.print(console.table("Collected", columns, rows))
+
+
+def band_text(band: dict | None) -> str:
+    """'in [45, 55]', 'OFF [38, 46]' or 'none recorded'."""
+    if not band or band["in_band"] is None:
+        return "none recorded"
+    parts = [
+        f"{'in' if policy['in_band'] else 'OFF'} [{policy['band'][0]:g}, {policy['band'][1]:g}]"
+        for policy in band["policies"].values()
+        if policy["band"] is not None
+    ]
+    return ", ".join(parts)
 
 
 def register(app: typer.Typer) -> None:

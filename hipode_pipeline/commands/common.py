@@ -101,6 +101,14 @@ RootOption = Annotated[
 ]
 SeedOption = Annotated[int, typer.Option("--seed", help="Seed for every random number generator.")]
 ForceFlag = Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")]
+AllowOffBandFlag = Annotated[
+    bool,
+    typer.Option(
+        "--allow-off-band",
+        help="Use a source whose behaviour policy scored outside the band of its kind "
+        "(refused otherwise); the output records it.",
+    ),
+]
 EvalEveryOption = Annotated[
     int | None, typer.Option("--eval-every", help="Updates between evaluations.")
 ]

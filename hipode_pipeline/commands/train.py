@@ -9,6 +9,7 @@ import typer
 
 from hipode_pipeline import console
 from hipode_pipeline.commands.common import (
+    AllowOffBandFlag,
     DeviceOption,
     EvalEpisodesOption,
     EvalEveryOption,
@@ -105,6 +106,7 @@ def train_command(
     device: DeviceOption = None,
     root: RootOption = None,
     force: ForceFlag = False,
+    allow_off_band: AllowOffBandFlag = False,
     json_output: JsonFlag = False,
 ) -> None:
     """Train an offline learner on the task's data, evaluate it, print its scores (resumes)."""
@@ -139,6 +141,7 @@ def train_command(
         root=root,
         name=name,
         force=force,
+        allow_off_band=allow_off_band,
         show_progress=not json_output,
     )
     if json_output:

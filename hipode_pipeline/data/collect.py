@@ -21,6 +21,14 @@ from typing import Any
 import numpy as np
 
 from hipode_pipeline.console import progress, rate_text
+from hipode_pipeline.data.bands import (
+    ALLOW_FLAG,
+    POLICIES_OF_KIND,
+    OffBandError,
+    band_record,
+    dataset_band,
+    off_band_text,
+)
 from hipode_pipeline.data.minari_write import dataset_dir, split_episodes, write_minari_dataset
 from hipode_pipeline.data.ppo import (
     ActionFn,
@@ -49,13 +57,7 @@ from hipode_pipeline.versions import package_versions
 
 RECIPE_FILE = "collect.toml"
 # the behaviour policies each dataset kind needs
-POLICIES_BY_KIND = {
-    "random": (),
-    "medium": ("medium",),
-    "medium-replay": ("medium",),
-    "expert": ("expert",),
-    "medium-expert": ("medium", "expert"),
-}
+POLICIES_BY_KIND = POLICIES_OF_KIND
 # fixed ids that separate the seed streams of rollouts and evaluations per policy
 STREAM_IDS = {"random": 1, "medium": 2, "expert": 3}
 # tests set this to stop training right after the first checkpoint at or past this many steps
@@ -71,6 +73,8 @@ class CollectRecipe:
     ppo: PPOConfig  # behaviour-policy trainer
     medium_check_from: float  # normalized recent training return from which policies are evaluated
     medium_range: tuple[float, float]  # evaluated normalized return that makes the medium policy
+    # where D4RL's medium policy scores: a medium policy outside it makes the data off-band
+    medium_band: tuple[float, float] | None
     medium_max_steps: int  # env steps after which the current policy is medium regardless
     expert_target: float  # evaluated normalized return that ends expert training early
     expert_steps: int  # env-step budget of expert training
@@ -117,6 +121,10 @@ def load_recipe(env: str, profile: str = "full", path: Path | None = None) -> Co
     if missing:
         raise DataFormatError(path, missing[0], "a value in [defaults]", "nothing")
     values["medium_range"] = tuple(float(v) for v in values["medium_range"])
+    band = values["medium_band"]
+    if not isinstance(band, list) or len(band) not in (0, 2):
+        raise DataFormatError(path, "medium_band", "[low, high] or [] (no band)", band)
+    values["medium_band"] = tuple(float(v) for v in band) if band else None
     return CollectRecipe(
         env=env, profile=profile, ppo=PPOConfig.from_dict(ppo, str(path)), **values
     )
@@ -136,6 +144,7 @@ class CollectResult:
     phase_seconds: dict[str, float] = field(default_factory=dict)  # train/evaluate/rollout/write
     steps_per_second: dict[str, float] = field(default_factory=dict)  # env steps/s per phase
     path: str = ""  # dataset folder
+    band: dict[str, Any] | None = None  # behaviour policies against their bands (data.bands)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -547,6 +556,7 @@ def _existing_result(task: Task, path: Path, started: float) -> CollectResult:
     meta = json.loads((path / "data" / "metadata.json").read_text())
     behaviour = meta.get("hipode", {}).get("behaviour_policy", {})
     return CollectResult(
+        band=dataset_band(meta),
         dataset_ids=[task.local_dataset_id],
         seconds=time.perf_counter() - started,
         policy_returns={k: v["mean"] for k, v in behaviour.items()},
@@ -566,12 +576,31 @@ def collect(
     profile: str = "full",
     force: bool = False,
     show_progress: bool = True,
+    allow_off_band: bool = False,
 ) -> CollectResult:
     """Build the Minari dataset `task.local_dataset_id` (training or reusing its policies).
 
     An existing dataset is left as it is unless `force`; force rebuilds the dataset from the
     cached policies and chunks (delete `<root>/collect/<env>-seed<seed>/` to retrain).
+    A dataset whose behaviour policy misses its band is written, marked so in its metadata,
+    and then raises OffBandError (policies and checkpoints stay) unless `allow_off_band`.
     """
+    result = _collect(task, root, seed, profile, force, show_progress)
+    if result.band and result.band["in_band"] is False and not allow_off_band:
+        raise OffBandError(
+            f"{task.local_dataset_id} at {result.path}: the behaviour policy "
+            f"{off_band_text(result.band)}; the dataset is written and marked off-band in its "
+            f"metadata, and augment and train refuse it without {ALLOW_FLAG}. Its policies "
+            f"stay in {work_dir(use_datasets_root(root), task.env, seed)}; to build it again, "
+            "raise the training budget in stages/collect.toml and collect with another --seed "
+            "(a finished medium search does not continue under a new budget yet)"
+        )
+    return result
+
+
+def _collect(
+    task: Task, root: Path | None, seed: int, profile: str, force: bool, show_progress: bool
+) -> CollectResult:
     started = time.perf_counter()
     if not task.collectable or task.kind not in POLICIES_BY_KIND:
         raise NotCollectableError(
@@ -645,6 +674,7 @@ def _collect_in(
 
     t0 = time.perf_counter()
     transitions = int(sum(len(e["rewards"]) for e in episodes))
+    band = band_record(task.kind, {"medium": recipe.medium_band}, behaviour)
     extra = {
         "hipode": {
             "task": task.name,
@@ -662,6 +692,7 @@ def _collect_in(
                 "evaluation": {name: behaviour[name]["seed"] for name in needed},
             },
             "behaviour_policy": behaviour,
+            "band": band,
             "dataset_episode_return": _episode_return_stats(episodes, task),
             "transitions": transitions,
             "training": {k: v for k, v in milestones.items() if k in ("medium", "expert")},
@@ -694,6 +725,7 @@ def _collect_in(
         phase_seconds={k: round(v, 3) for k, v in phases.items()},
         steps_per_second={k: round(v, 1) for k, v in speeds.items()},
         path=str(path),
+        band=band,
     )
 
 
