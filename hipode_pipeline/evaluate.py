@@ -121,10 +121,14 @@ def evaluate_policies(
         lengths = np.zeros((k, episodes), dtype=np.int64)
         active = np.ones((k, episodes), dtype=bool)
         while active.any():
+            # only episodes still running anywhere: a policy that samples draws no numbers for
+            # finished ones (with one seed, exactly the episodes still running)
+            columns = np.flatnonzero(active.any(0))
             # the env charges control cost on the action as given: keep it inside the limits
-            actions = np.clip(np.asarray(policies(observations)), low, high)
-            for g, i in zip(*np.nonzero(active), strict=True):
-                obs, reward, terminated, truncated, _ = envs[g][i].step(actions[g, i])
+            actions = np.clip(np.asarray(policies(observations[:, columns])), low, high)
+            for g, c in zip(*np.nonzero(active[:, columns]), strict=True):
+                i = columns[c]
+                obs, reward, terminated, truncated, _ = envs[g][i].step(actions[g, c])
                 observations[g, i] = obs
                 returns[g, i] += float(reward)
                 lengths[g, i] += 1

@@ -57,6 +57,7 @@ MAX_STEPS = 100_000_000
 MAX_BATCH_SIZE = 1 << 20
 MAX_EVAL_EPISODES = 10_000
 MAX_SEEDS = 256  # seeds trained side by side in one process
+MAX_EVAL_ENVS = 4096  # MuJoCo envs an evaluation of all seeds opens at once
 PRECISIONS = ("fp32", "bf16")
 
 
@@ -325,6 +326,12 @@ def train_seeds(
         run["eval_episodes"] if eval_episodes is None else eval_episodes,
         MAX_EVAL_EPISODES,
     )
+    if len(seeds) * eval_episodes > MAX_EVAL_ENVS:
+        raise SettingError(
+            f"--seeds × --eval-episodes: expected at most {MAX_EVAL_ENVS:,} evaluation episodes "
+            f"stepped together, found {len(seeds)} × {eval_episodes}; train fewer seeds per "
+            "command"
+        )
     batch_size = _positive(
         "--batch-size", run["batch_size"] if batch_size is None else batch_size, MAX_BATCH_SIZE
     )
@@ -418,6 +425,9 @@ def train_seeds(
             "[yellow]note:[/] --data source trains on the source alone: "
             "--artifact and --eta are not used"
         )
+    folders = [seed_run.run_dir.resolve() for seed_run in runs]
+    if len(set(folders)) != len(folders):
+        raise SettingError(f"run folders: expected one per seed, found repeats in {folders}")
     results: dict[int, TrainResult] = {}
     # one writer per run folder: a second identical command waits, then finds it finished;
     # folders are locked in one order, so two overlapping seed lists never wait on each other
@@ -518,6 +528,12 @@ def _train_group(
     for seed_run in group:
         seed_run.config["precision"] = precision
         seed_run.config["seeds_trained_together"] = seeds
+        # every session of the run, with the seeds it was stacked with: float rounding depends
+        # on the group, so a resume in another group continues close to, not exactly as, before
+        seed_run.config["sessions"] = [
+            *_previous_sessions(seed_run.run_dir, resume_step),
+            {"from_step": resume_step, "seeds_trained_together": seeds},
+        ]
         truncate_metrics(seed_run.run_dir / "metrics.jsonl", resume_step)
         write_json_atomic(seed_run.run_dir / "config.json", seed_run.config)
 
@@ -554,6 +570,23 @@ def _scalars(values: Any) -> dict[str, Any] | None:
     if not isinstance(values, dict):
         return None
     return {k: v for k, v in values.items() if isinstance(v, str | int | float | bool)}
+
+
+def _previous_sessions(run_dir: Path, resume_step: int) -> list[dict[str, Any]]:
+    """The sessions config.json lists that ended at or before `resume_step`."""
+    try:
+        previous = json.loads((run_dir / "config.json").read_text()).get("sessions", [])
+    except (OSError, ValueError, AttributeError):
+        return []
+    if not isinstance(previous, list):
+        return []
+    return [
+        session
+        for session in previous
+        if isinstance(session, dict)
+        and isinstance(session.get("from_step"), int)
+        and session["from_step"] < resume_step
+    ]
 
 
 def make_evaluator(policies, config: dict[str, Any], seeds: Sequence[int]):

@@ -61,3 +61,20 @@ def test_normalized_score_endpoints():
 def test_module_paths_as_env_ids_are_refused():
     with pytest.raises(HipodeError, match="module path"):
         evaluate_policy(fixed_policy, "os:system", episodes=1)
+
+
+def test_a_sampling_policy_is_asked_only_for_running_episodes():
+    """A policy that draws random numbers sees exactly the episodes still running, so its draws
+    (and a behaviour policy's measured return) do not depend on finished ones."""
+    sizes = []
+    rng = np.random.default_rng(0)
+
+    def noisy(observations):
+        sizes.append(len(observations))
+        return rng.uniform(-1, 1, (len(observations), 3))
+
+    result = evaluate_policy(noisy, "Hopper-v5", episodes=4, seed=0)
+    lengths = sorted(result.lengths)
+    # with 4 episodes of lengths l1 <= ... <= l4, the batch shrinks by one at each ending
+    expected = [sum(1 for length in lengths if length > t) for t in range(lengths[-1])]
+    assert sizes == expected and len(set(lengths)) > 1

@@ -85,6 +85,11 @@ def test_interrupted_seeds_resume_exactly_and_groups_form_by_step(tmp_path, tiny
     # seed 2 starts fresh beside seeds 0 and 1, which resume from step 10: two groups
     resumed = train_seeds("hopper-m-r", seeds=[0, 1, 2], out_dir=tmp_path / "b", **data)
     assert [r.resumed_from for r in resumed] == [10, 10, 0]
+    sessions = json.loads((Path(resumed[0].run_dir) / "config.json").read_text())["sessions"]
+    assert sessions == [
+        {"from_step": 0, "seeds_trained_together": [0, 1]},
+        {"from_step": 10, "seeds_trained_together": [0, 1]},
+    ]
     assert all(r.steps == 20 for r in resumed)
     for ref, got in zip(reference, resumed[:2], strict=True):
         assert got.evaluations == ref.evaluations
@@ -124,3 +129,27 @@ def test_bad_seed_lists_are_refused_before_any_work(tmp_path, tiny_pair, flags, 
     )
     assert result.exit_code != 0 and message in result.output, result.output
     assert not out.exists()
+
+
+def test_seed_lists_are_strict(tmp_path):
+    from hipode_pipeline.errors import SettingError
+    from hipode_pipeline.seeding import parse_seeds
+
+    assert parse_seeds("0-2,7") == [0, 1, 2, 7] and parse_seeds(" 3 ") == [3]
+    for text in ("1_000", "+3", "٣", "3-", "0--1", "-1", ""):
+        with pytest.raises(SettingError, match="expected seeds like"):
+            parse_seeds(text)
+    with pytest.raises(SettingError, match="at most 10000 seeds"):
+        parse_seeds("0-9999,10000-10001")
+
+
+def test_too_many_evaluation_envs_and_repeated_folders_are_refused(tmp_path, tiny_pair):
+    from hipode_pipeline.errors import SettingError
+
+    source, artifact = tiny_pair
+    data = dict(source=source, artifact=artifact, show_progress=False, steps=2)
+    with pytest.raises(SettingError, match="evaluation episodes stepped together"):
+        train_seeds("hopper-m-r", seeds=list(range(10)), eval_episodes=500, **data)
+    with pytest.raises(SettingError, match="one per seed"):
+        train_seeds("hopper-m-r", seeds=[0, 1], run_dirs=[tmp_path / "x", tmp_path / "x"], **data)
+    assert not (tmp_path / "x").exists()

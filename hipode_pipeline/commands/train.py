@@ -16,7 +16,6 @@ from hipode_pipeline.commands.common import (
     ForceFlag,
     JsonFlag,
     RootOption,
-    SeedOption,
     output_folder,
     user_errors,
 )
@@ -44,13 +43,17 @@ def train_command(
             "--steps", help="Updates (default: stages/train.toml; shorter without a GPU)."
         ),
     ] = None,
-    seed: SeedOption = 0,
+    seed: Annotated[
+        int | None,
+        typer.Option("--seed", help="Seed for every random number generator (default 0)."),
+    ] = None,
     seeds: Annotated[
         str | None,
         typer.Option(
             "--seeds",
             help="Several training seeds, e.g. 0-4 or 0,2,5: built-in learners train them in "
-            "one process as one stacked model; each seed gets the run folder --seed writes.",
+            "one process as one stacked model; each seed gets the run folder --seed writes "
+            "(with --name NAME: NAME-seed<k>).",
         ),
     ] = None,
     eta: Annotated[
@@ -119,9 +122,9 @@ def train_command(
     from hipode_pipeline.seeding import parse_seeds
     from hipode_pipeline.train import train_seeds
 
-    if seeds is not None and seed != 0:
+    if seeds is not None and seed is not None:
         raise SettingError("--seed and --seeds: give one of them")
-    seed_list = parse_seeds(seeds) if seeds is not None else [seed]
+    seed_list = parse_seeds(seeds) if seeds is not None else [0 if seed is None else seed]
     results = train_seeds(
         task,
         learner,

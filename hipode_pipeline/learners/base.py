@@ -27,7 +27,7 @@ __all__ = [
     "fast_bf16",
     "polyak_",
     "select_device",
-    "stack_batch",
+    "as_seed_batch",
 ]
 
 
@@ -82,7 +82,7 @@ def adam(params, lr: float, device: torch.device) -> torch.optim.Adam:
         return torch.optim.Adam(params, lr=lr, foreach=True)
 
 
-def stack_batch(batch: Batch, n_seeds: int) -> Batch:
+def as_seed_batch(batch: Batch, n_seeds: int) -> Batch:
     """A (K, B, ...) batch as is; a one-seed learner also takes a plain (B, ...) batch."""
     if batch.rewards.dim() == 2:
         if batch.rewards.shape[0] != n_seeds:
@@ -257,6 +257,10 @@ class Learner:
         if len(steps) != 1:
             raise HipodeError(f"{origin}: expected seeds at one step, found steps {steps}")
         self.step = steps[0]
+        # the states say which seeds these are: their streams continue under their own names
+        self.seeds = [
+            int(state.get("seed", seed)) for state, seed in zip(states, self.seeds, strict=True)
+        ]
         first = states[0]
         for generator, state in zip(self.generators, states, strict=True):
             generator.set_state(state["generator"])
@@ -268,10 +272,11 @@ class Learner:
             for key, optimizer in self.optimizers.items():
                 optimizer.load_state_dict(_stack_states([s["optimizers"][key] for s in states]))
         except (KeyError, RuntimeError, ValueError) as error:
+            detail = " ".join(line.strip() for line in str(error).splitlines()[:3])[:400]
             raise HipodeError(
                 f"{origin}: its weights do not fit this {self.name} learner (saved by an older "
-                f"layout or other settings: {str(error).splitlines()[0]}); rerun with --force "
-                "to start the run afresh"
+                f"layout or other settings: {detail}); rerun with --force to start the run "
+                "afresh"
             ) from error
         for key, scheduler in self.schedulers.items():
             scheduler.load_state_dict(first["schedulers"][key])

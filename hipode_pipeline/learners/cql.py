@@ -22,8 +22,8 @@ from hipode_pipeline.learners.base import (
     Learner,
     LearnerConfig,
     adam,
+    as_seed_batch,
     polyak_,
-    stack_batch,
 )
 from hipode_pipeline.learners.stacked import (
     StackedMLP,
@@ -147,7 +147,7 @@ class CQL(Learner):
 
     def update(self, batch: Batch) -> dict[str, torch.Tensor]:
         c = self.config
-        batch = stack_batch(batch, self.n_seeds)
+        batch = as_seed_batch(batch, self.n_seeds)
         obs, next_obs, actions = (
             self.normalize(batch.observations),
             self.normalize(batch.next_observations),

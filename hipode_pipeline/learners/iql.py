@@ -23,8 +23,8 @@ from hipode_pipeline.learners.base import (
     Learner,
     LearnerConfig,
     adam,
+    as_seed_batch,
     polyak_,
-    stack_batch,
 )
 from hipode_pipeline.learners.stacked import StackedMLP, StackedTwinCritic
 
@@ -117,7 +117,7 @@ class IQL(Learner):
 
     def update(self, batch: Batch) -> dict[str, torch.Tensor]:
         c = self.config
-        batch = stack_batch(batch, self.n_seeds)
+        batch = as_seed_batch(batch, self.n_seeds)
         obs, next_obs = self.normalize(batch.observations), self.normalize(batch.next_observations)
         rewards = batch.rewards * self.reward_scale
         self.step += 1

@@ -44,9 +44,17 @@ def matmul_dtype(use_bf16: bool) -> torch.dtype:
     return torch.bfloat16 if use_bf16 else torch.float32
 
 
-def _layer(h: torch.Tensor, w: torch.Tensor, b: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
-    """h (G, N, in) @ w (G, in, out) + b (G, 1, out) in `dtype` (a no-op cast in fp32)."""
-    return torch.baddbmm(b.to(dtype), h.to(dtype), w.to(dtype))
+def run_layers(h: torch.Tensor, layers, use_bf16: bool) -> torch.Tensor:
+    """h (G, N, in) through (w (G, in, out), b (G, 1, out)) layers with ReLU between them; the
+    hidden layers in bf16 when asked (a no-op cast in fp32), the last one always in fp32."""
+    last = len(layers) - 1
+    hidden = matmul_dtype(use_bf16)
+    for i, (w, b) in enumerate(layers):
+        dtype = torch.float32 if i == last else hidden
+        h = torch.baddbmm(b.to(dtype), h.to(dtype), w.to(dtype))
+        if i < last:
+            h = torch.relu_(h)  # in place: the fresh output it would write costs more
+    return h
 
 
 class StackedMLP(nn.Module):
@@ -72,19 +80,10 @@ class StackedMLP(nn.Module):
         self.output_activation = output_activation
         self.use_bf16 = False
 
-    @property
-    def members(self) -> int:
-        return self.weights[0].shape[0]
-
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         k, lead = x.shape[0], x.shape[1:-1]
-        h = x.reshape(k, -1, x.shape[-1])
-        last = len(self.weights) - 1
-        hidden = matmul_dtype(self.use_bf16)
-        for i, (w, b) in enumerate(zip(self.weights, self.biases, strict=True)):
-            h = _layer(h, w, b, torch.float32 if i == last else hidden)
-            if i < last:
-                h = torch.relu_(h)  # in place: the fresh output it would write costs more
+        layers = list(zip(self.weights, self.biases, strict=True))
+        h = run_layers(x.reshape(k, -1, x.shape[-1]), layers, self.use_bf16)
         if self.output_activation is not None:
             h = self.output_activation(h)
         return h.reshape(k, *lead, h.shape[-1])
@@ -115,16 +114,6 @@ class StackedTwinCritic(nn.Module):
             self.biases.append(nn.Parameter(b))
         self.use_bf16 = False
 
-    def _run(self, x: torch.Tensor, layers) -> torch.Tensor:
-        last = len(layers) - 1
-        hidden = matmul_dtype(self.use_bf16)
-        h = x
-        for i, (w, b) in enumerate(layers):
-            h = _layer(h, w, b, torch.float32 if i == last else hidden)
-            if i < last:
-                h = torch.relu_(h)  # in place: the fresh output it would write costs more
-        return h
-
     def forward(self, observations: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         x = torch.cat([observations, actions], dim=-1)
         k, lead = x.shape[0], x.shape[1:-1]
@@ -134,7 +123,7 @@ class StackedTwinCritic(nn.Module):
             (w.reshape(k * m, *w.shape[2:]), b.reshape(k * m, *b.shape[2:]))
             for w, b in zip(self.weights, self.biases, strict=True)
         ]
-        return self._run(h, layers).reshape(k, m, *lead)
+        return run_layers(h, layers, self.use_bf16).reshape(k, m, *lead)
 
     def first(
         self, observations: torch.Tensor, actions: torch.Tensor, *, frozen: bool = False
@@ -147,7 +136,8 @@ class StackedTwinCritic(nn.Module):
             (w[:, 0].detach(), b[:, 0].detach()) if frozen else (w[:, 0], b[:, 0])
             for w, b in zip(self.weights, self.biases, strict=True)
         ]
-        return self._run(x.reshape(k, -1, x.shape[-1]), layers).reshape(k, *lead)
+        h = run_layers(x.reshape(k, -1, x.shape[-1]), layers, self.use_bf16)
+        return h.reshape(k, *lead)
 
 
 def orthogonal_(weight: torch.Tensor, gain: float, generators: Sequence[torch.Generator]) -> None:

@@ -21,8 +21,8 @@ from hipode_pipeline.learners.base import (
     Learner,
     LearnerConfig,
     adam,
+    as_seed_batch,
     polyak_,
-    stack_batch,
 )
 from hipode_pipeline.learners.stacked import StackedMLP, StackedTwinCritic
 
@@ -113,7 +113,7 @@ class TD3BC(Learner):
 
     def update(self, batch: Batch) -> dict[str, torch.Tensor]:
         c = self.config
-        batch = stack_batch(batch, self.n_seeds)
+        batch = as_seed_batch(batch, self.n_seeds)
         obs, next_obs = self.normalize(batch.observations), self.normalize(batch.next_observations)
         noise = self.randn(*batch.actions.shape[1:])
         noise = (noise * c.policy_noise).clamp(-c.noise_clip, c.noise_clip) * c.max_action
