@@ -59,6 +59,14 @@ def test_off_band_collection_fails_is_marked_and_refused_downstream(
     assert summary["allowed_off_band"] is True
     assert summary["source_band"]["in_band"] is False
 
+    artifact = summary["artifact"]
+    sweep = ["sweep", "--tasks", "hopper-m-r", "--seeds", "0", "--steps", "2", "--eval-every"]
+    sweep += ["2", "--eval-episodes", "1", "--artifact", artifact, "--out", str(tmp_path / "sw")]
+    refused_sweep = runner.invoke(app, sweep)
+    assert refused_sweep.exit_code == 3 and "--allow-off-band" in refused_sweep.output
+    swept = runner.invoke(app, [*sweep, "--allow-off-band", "--json"])
+    assert swept.exit_code == 0, swept.output
+
     out = tmp_path / "runs"
     train = ["train", "hopper-m-r", "--data", "source", *TINY_TRAIN, "--out", str(out)]
     assert runner.invoke(app, train).exit_code == 3 and not out.exists()

@@ -13,6 +13,7 @@ import typer
 
 from hipode_pipeline import console
 from hipode_pipeline.commands.common import (
+    AllowOffBandFlag,
     DeviceOption,
     ForceFlag,
     JsonFlag,
@@ -178,6 +179,7 @@ def sweep_command_for(
                 "(default: all; fewer spread an arm over more --workers; 1: one process per run).",
             ),
         ] = None,
+        allow_off_band: AllowOffBandFlag = False,
         device: DeviceOption = None,
         out: Annotated[
             Path,
@@ -228,6 +230,7 @@ def sweep_command_for(
             workers=workers,
             threads=threads,
             seeds_per_process=seeds_per_process,
+            allow_off_band=allow_off_band,
             device=device,
             out=out,
             results=results,

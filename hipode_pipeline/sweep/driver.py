@@ -82,6 +82,7 @@ def command_line(config: SweepConfig) -> str:
     args += ["--engine", config.engine, "--workers", str(config.workers)]
     if config.seeds_per_process is not None:
         args += ["--seeds-per-process", str(config.seeds_per_process)]
+    args += ["--allow-off-band"] if config.allow_off_band else []
     return shlex.join(args)
 
 

@@ -74,6 +74,7 @@ class SweepConfig:
     workers: int = 1  # parallel units (local processes, or the local Ray's CPUs)
     threads: int = 1  # torch threads per unit (its seeds share them)
     seeds_per_process: int | None = None  # seeds trained together per unit; None: all of them
+    allow_off_band: bool = False  # use sources whose behaviour policy missed its band
     device: str | None = None  # torch device; None: CUDA when present
     out: Path = Path("runs") / "sweep"  # run folders and ablation artifacts
     results: Path | None = None  # quality.md / .json / .png; None: <out>/report
@@ -187,14 +188,17 @@ def own_source(task: Task, source: str | None) -> bool:
 
 
 def ensure_source(
-    task: Task, source: str | None, root: Path, show_progress: bool
+    task: Task, source: str | None, root: Path, show_progress: bool, allow_off_band: bool = False
 ) -> tuple[Transitions, SourceInfo]:
     """The task's source, collected first if it is the task's own and missing (an explicit
-    --source must exist)."""
+    --source must exist); an off-band source is refused unless `allow_off_band`."""
+    from hipode_pipeline.data.bands import check_source_band
     from hipode_pipeline.data.load import load_source
 
     try:
-        return load_source(source or task.name, root)
+        loaded = load_source(source or task.name, root)
+        check_source_band(loaded[1].metadata, str(loaded[1].id), allow_off_band=allow_off_band)
+        return loaded
     except DatasetNotFoundError:
         if not own_source(task, source):
             raise
@@ -204,7 +208,7 @@ def ensure_source(
         f"[yellow]{task.name}: source {task.local_dataset_id} is missing under {root}; "
         "collecting it first (hipode collect), this takes a while once[/]"
     )
-    collect(task, root=root, show_progress=show_progress)
+    collect(task, root=root, show_progress=show_progress, allow_off_band=allow_off_band)
     return load_source(source or task.name, root)
 
 
@@ -282,6 +286,7 @@ def prepare_artifact(
             root=root,
             device=config.device,
             show_progress=config.show_progress,
+            allow_off_band=config.allow_off_band,
             **overrides,
         )
     except OverwriteError as error:
@@ -332,7 +337,9 @@ def run_specs(
     specs, described = [], {}
     for task_name in config.tasks:
         task = get_task(task_name)
-        source = ensure_source(task, config.source, root, config.show_progress)
+        source = ensure_source(
+            task, config.source, root, config.show_progress, config.allow_off_band
+        )
         described[task.name] = []
         paths = {
             (learner, arm.name): prepare_artifact(task, learner, arm, config, root, source[1])
@@ -383,6 +390,7 @@ def run_specs(
                             force=config.force,
                             mixing=arm.mixing,
                             learner=learner,
+                            allow_off_band=config.allow_off_band,
                         )
                     )
     return specs, described

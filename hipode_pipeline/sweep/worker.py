@@ -41,6 +41,7 @@ class RunSpec:
     force: bool = False  # train again even if a finished run exists
     mixing: str = "mixed"  # batch composition: mixed (η·B synthetic per batch) | union
     learner: str = "td3bc"  # the offline learner trained
+    allow_off_band: bool = False  # train on a source whose behaviour policy missed its band
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -170,6 +171,7 @@ def train_unit(specs: list[RunSpec]) -> dict[int, dict[str, Any]]:
         run_dirs=[s.run_dir() for s in specs],
         force=spec.force,
         show_progress=False,  # the driver shows one bar over all runs
+        allow_off_band=spec.allow_off_band,
     )
     records = {}
     for run_spec, result in zip(specs, results, strict=True):
