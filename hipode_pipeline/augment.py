@@ -43,6 +43,7 @@ from hipode_pipeline.generate import (
     synthetic_count,
 )
 from hipode_pipeline.models.generators import GeneratorConfig, Generators, train_generators
+from hipode_pipeline.overrides import check_fields
 from hipode_pipeline.paths import use_datasets_root
 from hipode_pipeline.seeding import SEED_MAX, derive_seed
 from hipode_pipeline.tasks import LEARNERS, Task, get_task
@@ -179,6 +180,7 @@ def run_augment(
     device: str | None = None,
     show_progress: bool = True,
     allow_off_band: bool = False,
+    generator_settings: dict[str, Any] | None = None,
 ) -> AugmentSummary:
     """Stage one end to end: load (collecting first if the task's own dataset is missing), train
     or reuse the generators, generate, write the artifact and its summary JSON.
@@ -211,7 +213,14 @@ def run_augment(
         }
         if penalty is not None:
             overrides["penalty"] = penalty
-        generator_config = GeneratorConfig.profile(profile, **overrides)
+        extra = check_fields(
+            GeneratorConfig, dict(generator_settings or {}), "--set/--config (GeneratorConfig)"
+        )
+        given = {"alpha": alpha, "sigma": sigma, "penalty": penalty}
+        twice = sorted(key for key in extra if given.get(key) is not None)
+        if twice:
+            raise SettingError(f"--set/--config and --{twice[0]}: give {twice[0]} once")
+        generator_config = GeneratorConfig.profile(profile, **{**overrides, **extra})
         check_seed(seed)
         stage_one_threads("generate")  # a bad OMP_NUM_THREADS fails here, before any work
         torch_device = select_device(device)

@@ -196,8 +196,8 @@ def builtin_learner_config(
         values.setdefault("max_steps", steps)
     return cls.config_class.from_dict(
         values,
-        origin=f"learner settings ({learner}.config / {learner}.tasks.{task.name} of "
-        "stages/train.toml, overrides)",
+        origin=f"learner settings (stages/train.toml [{learner}.config] and "
+        f"[{learner}.tasks.{task.name}], --config, --set)",
     ).to_dict()
 
 

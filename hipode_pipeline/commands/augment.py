@@ -12,13 +12,16 @@ from hipode_pipeline import console
 from hipode_pipeline.augment import run_augment
 from hipode_pipeline.commands.common import (
     AllowOffBandFlag,
+    ConfigOption,
     DeviceOption,
     ForceFlag,
     JsonFlag,
     RootOption,
     SeedOption,
+    SetOption,
     user_errors,
 )
+from hipode_pipeline.overrides import read_overrides
 
 
 class Learner(StrEnum):
@@ -119,6 +122,8 @@ def augment_command(
     device: DeviceOption = None,
     force: ForceFlag = False,
     allow_off_band: AllowOffBandFlag = False,
+    set_values: SetOption = None,
+    config_file: ConfigOption = None,
     json_output: JsonFlag = False,
 ) -> None:
     """Train HIPODE's five generators on the source and write the synthetic dataset file."""
@@ -141,6 +146,7 @@ def augment_command(
         root=root,
         force=force,
         allow_off_band=allow_off_band,
+        generator_settings=read_overrides(set_values, config_file) or None,
         device=device,
         show_progress=True,
     )

@@ -101,6 +101,18 @@ RootOption = Annotated[
 ]
 SeedOption = Annotated[int, typer.Option("--seed", help="Seed for every random number generator.")]
 ForceFlag = Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")]
+SetOption = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--set",
+        help="KEY=VALUE setting of the learner (train) or the generators (augment), repeatable; "
+        "VALUE as in TOML (3e-4, true, [256, 256]); checked against the config's fields.",
+    ),
+]
+ConfigOption = Annotated[
+    Path | None,
+    typer.Option("--config", help="TOML file of KEY = VALUE settings, applied before any --set."),
+]
 AllowOffBandFlag = Annotated[
     bool,
     typer.Option(

@@ -10,16 +10,19 @@ import typer
 from hipode_pipeline import console
 from hipode_pipeline.commands.common import (
     AllowOffBandFlag,
+    ConfigOption,
     DeviceOption,
     EvalEpisodesOption,
     EvalEveryOption,
     ForceFlag,
     JsonFlag,
     RootOption,
+    SetOption,
     output_folder,
     user_errors,
 )
 from hipode_pipeline.errors import SettingError
+from hipode_pipeline.overrides import read_overrides
 
 
 @user_errors
@@ -106,6 +109,8 @@ def train_command(
         str | None,
         typer.Option("--name", help="Run folder name under OUT/<task>/ instead of the identity."),
     ] = None,
+    set_values: SetOption = None,
+    config_file: ConfigOption = None,
     device: DeviceOption = None,
     root: RootOption = None,
     force: ForceFlag = False,
@@ -125,6 +130,9 @@ def train_command(
     if seeds is not None and seed is not None:
         raise SettingError("--seed and --seeds: give one of them")
     seed_list = parse_seeds(seeds) if seeds is not None else [0 if seed is None else seed]
+    settings = read_overrides(set_values, config_file)
+    if settings and learner.startswith("d3rlpy:"):
+        raise SettingError("--set/--config: learner settings are for td3bc, iql and cql")
     results = train_seeds(
         task,
         learner,
@@ -140,6 +148,7 @@ def train_command(
         eta=eta,
         mixing=mixing,
         batch_size=batch_size,
+        learner_settings=settings or None,
         device=device,
         root=root,
         name=name,

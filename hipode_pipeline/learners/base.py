@@ -5,7 +5,7 @@ deterministic acting."""
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
@@ -17,6 +17,7 @@ from hipode_pipeline.data.transitions import Transitions
 from hipode_pipeline.device import select_device
 from hipode_pipeline.errors import HipodeError
 from hipode_pipeline.learners.stacked import init_generators
+from hipode_pipeline.overrides import check_fields
 from hipode_pipeline.replay import Batch
 
 __all__ = [
@@ -49,15 +50,9 @@ class LearnerConfig:
 
     @classmethod
     def from_dict(cls, values: dict[str, Any], origin: str = "learner settings"):
-        """Build from a dict (a TOML table, CLI overrides), naming unknown keys clearly."""
-        known = {f.name: f for f in fields(cls)}
-        unknown = sorted(set(values) - set(known))
-        if unknown:
-            raise HipodeError(
-                f"{origin}: unknown setting(s) {unknown} for {cls.__name__}; "
-                f"expected some of {sorted(known)}"
-            )
-        return cls(**values)
+        """Build from a dict (a TOML table, CLI overrides), naming unknown keys and values of
+        the wrong type clearly."""
+        return cls(**check_fields(cls, values, f"{origin} ({cls.__name__})"))
 
 
 def fast_bf16(device: torch.device) -> bool:
