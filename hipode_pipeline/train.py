@@ -445,6 +445,7 @@ def train_seeds(
             else:
                 pending.append(seed_run)
         if pending:
+            console.err.print(console.plain(_plan_line(config, pending, merged)))
             if eta_note:
                 console.err.print(f"[yellow]note:[/] {eta_note}")
             if run_data.artifact_choice == "table":
@@ -486,6 +487,22 @@ def train_seeds(
             ):
                 results[result.seed] = result
     return [results[seed] for seed in seeds]
+
+
+def _plan_line(config: dict[str, Any], pending: list[SeedRun], merged: MergedData) -> str:
+    """What is about to train, in one line: learner, data, seeds, budget, device, precision."""
+    seeds = [r.seed for r in pending]
+    data = f"{config['source_id']} ({config['n_real']:,} rows)"
+    if config["data"] == "merged":
+        data += f" ⊕ {Path(str(merged.artifact_path)).name} ({config['n_synthetic']:,} rows, "
+        data += f"batch η {config['eta']:g})"
+    bf16 = config["learner_config"].get("bf16")
+    return (
+        f"training {config['learner']} on {config['task']}: {data}; "
+        f"seed{'s' if len(seeds) > 1 else ''} {', '.join(map(str, seeds))}; "
+        f"{config['steps']:,} updates of {config['batch_size']}; {config['device']}, "
+        f"{'bf16 hidden matmuls' if bf16 else 'fp32'}"
+    )
 
 
 def _train_group(
