@@ -45,13 +45,15 @@ def test_collection_runs_on_one_thread_and_gives_the_count_back(
 ):
     seen = []
 
+    collected = collect_module.CollectResult(dataset_ids=["fake"], seconds=0.0, policy_returns={})
+
     def fake_collect_in(*args, **kwargs):
         # stands in for PPO training, evaluation and rollouts
         seen.append(torch.get_num_threads())
-        return "collected"
+        return collected
 
     monkeypatch.setattr(collect_module, "_collect_in", fake_collect_in)
-    assert collect_module.collect(get_task("hopper-m-r"), root=dataset_root) == "collected"
+    assert collect_module.collect(get_task("hopper-m-r"), root=dataset_root) is collected
     assert seen == [1]
     assert torch.get_num_threads() == 2
 

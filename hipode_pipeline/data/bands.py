@@ -10,9 +10,11 @@ record that they were.
 
 from __future__ import annotations
 
+import tomllib
 from typing import Any
 
 from hipode_pipeline.errors import HipodeError
+from hipode_pipeline.paths import stages_dir
 
 # which behaviour policies a dataset kind is made of, each checked against its band
 POLICIES_OF_KIND = {
@@ -74,14 +76,17 @@ def dataset_band(metadata: dict[str, Any]) -> dict[str, Any] | None:
     medium = recipe.get("medium_band", "absent")
     if medium == "absent" and recipe.get("profile") == "full" and recipe.get("env"):
         # collected before bands were recorded: the env's band as the registry has it now
-        from hipode_pipeline.data.collect import load_recipe
-
-        try:
-            medium = load_recipe(str(recipe["env"]), "full").medium_band
-        except HipodeError:
-            medium = None
+        medium = registry_medium_band(str(recipe["env"]))
     bands = {"medium": tuple(medium) if isinstance(medium, list | tuple) and medium else None}
     return band_record(str(hipode.get("kind")), bands, behaviour)
+
+
+def registry_medium_band(env: str) -> list[float] | None:
+    """stages/collect.toml's medium_band for `env` ([env] over [defaults]); None if unset."""
+    with open(stages_dir() / "collect.toml", "rb") as f:
+        recipes = tomllib.load(f)
+    band = recipes.get(env, {}).get("medium_band", recipes.get("defaults", {}).get("medium_band"))
+    return list(band) if isinstance(band, list) and len(band) == 2 else None
 
 
 def off_band_text(record: dict[str, Any]) -> str:
