@@ -260,14 +260,22 @@ def test_td3bc_one_update_matches_the_paper():
     # the fixture exercises the noise clip and the action clamp
     assert expected["noise_clipped"] and expected["action_clamped"]
 
-    metrics = learner.update(batch)
+    assert_td3bc_update(learner, learner.update(batch), before, expected)
 
+
+def assert_td3bc_update(learner, metrics, before, expected, k: int = 0) -> None:
+    """Seed k's losses, critic and actor steps and both Polyak targets as the reference's."""
     for name, value in expected["metrics"].items():
-        assert_metric(metrics, name, value)
-    assert_step(learner, "critic", "critic", before, *expected["critic"])
-    assert_step(learner, "actor", "actor", before, *expected["actor"])
-    assert_params(learner, "critic_target", expected["critic_target"])
-    assert_params(learner, "actor_target", expected["actor_target"])
+        assert_metric(metrics, name, value, k=k)
+    assert_step(learner, "critic", "critic", before, *expected["critic"], k=k)
+    assert_step(learner, "actor", "actor", before, *expected["actor"], k=k)
+    assert_params(learner, "critic_target", expected["critic_target"], k=k)
+    assert_params(learner, "actor_target", expected["actor_target"], k=k)
+
+
+def stacked(batches: list[Batch]) -> Batch:
+    """One (K, B, ...) batch of the seeds' own batches."""
+    return Batch(*(torch.stack(f) for f in zip(*batches, strict=True)))
 
 
 def test_td3bc_stacked_seeds_each_match_the_paper():
@@ -287,15 +295,10 @@ def test_td3bc_stacked_seeds_each_match_the_paper():
         expected.append(td3bc_reference(before[k], batches[k], *normalizer(real), normal, c))
     assert not torch.equal(before[0]["actor"]["weights.0"], before[1]["actor"]["weights.0"])
 
-    metrics = learner.update(Batch(*(torch.stack(f) for f in zip(*batches, strict=True))))
+    metrics = learner.update(stacked(batches))
 
     for k in range(2):
-        for name, value in expected[k]["metrics"].items():
-            assert_metric(metrics, name, value, k=k)
-        assert_step(learner, "critic", "critic", before[k], *expected[k]["critic"], k=k)
-        assert_step(learner, "actor", "actor", before[k], *expected[k]["actor"], k=k)
-        assert_params(learner, "critic_target", expected[k]["critic_target"], k=k)
-        assert_params(learner, "actor_target", expected[k]["actor_target"], k=k)
+        assert_td3bc_update(learner, metrics, before[k], expected[k], k=k)
 
 
 def test_td3bc_delays_actor_and_targets():
@@ -561,17 +564,20 @@ def test_cql_one_update_matches_the_paper(variant):
     draws = cql_draws(77, c.cql_n_actions, c.max_action)
     expected = cql_reference(before, batch, *normalizer(real), draws, c)
 
-    metrics = learner.update(batch)
+    assert_cql_update(learner, learner.update(batch), before, expected, c)
 
+
+def assert_cql_update(learner, metrics, before, expected, c: CQLConfig, k: int = 0) -> None:
+    """Seed k's losses, critic, actor and temperature steps and the Polyak target."""
     for name, value in expected["metrics"].items():
-        assert_metric(metrics, name, value)
-    assert_step(learner, "critic", "critic", before, *expected["critic"])
-    assert_params(learner, "critic_target", expected["critic_target"])
-    assert_step(learner, "actor", "actor", before, *expected["actor"])
+        assert_metric(metrics, name, value, k=k)
+    assert_step(learner, "critic", "critic", before, *expected["critic"], k=k)
+    assert_params(learner, "critic_target", expected["critic_target"], k=k)
+    assert_step(learner, "actor", "actor", before, *expected["actor"], k=k)
     if c.auto_entropy:
-        assert_step(learner, "entropy", "entropy", before, *expected["entropy"])
+        assert_step(learner, "entropy", "entropy", before, *expected["entropy"], k=k)
     else:
-        assert torch.equal(float64(learner.log_alpha), before["entropy"]["log_alpha"])
+        assert torch.equal(float64(learner.log_alpha, k), before["entropy"]["log_alpha"])
 
 
 def test_cql_stacked_seeds_each_match_the_paper():
@@ -589,12 +595,7 @@ def test_cql_stacked_seeds_each_match_the_paper():
         draws = cql_draws(draw_seed, c.cql_n_actions, c.max_action)
         expected.append(cql_reference(before[k], batches[k], *normalizer(real), draws, c))
 
-    metrics = learner.update(Batch(*(torch.stack(f) for f in zip(*batches, strict=True))))
+    metrics = learner.update(stacked(batches))
 
     for k in range(2):
-        for name, value in expected[k]["metrics"].items():
-            assert_metric(metrics, name, value, k=k)
-        assert_step(learner, "critic", "critic", before[k], *expected[k]["critic"], k=k)
-        assert_params(learner, "critic_target", expected[k]["critic_target"], k=k)
-        assert_step(learner, "actor", "actor", before[k], *expected[k]["actor"], k=k)
-        assert_step(learner, "entropy", "entropy", before[k], *expected[k]["entropy"], k=k)
+        assert_cql_update(learner, metrics, before[k], expected[k], c, k=k)
