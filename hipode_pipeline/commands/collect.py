@@ -41,8 +41,11 @@ def collect_command(
 ) -> None:
     """Build a D4RL-style MuJoCo dataset here as the Minari dataset local/<env>/<kind>-v0.
 
-    Behaviour policies are trained once per (env, seed) with PPO and reused; an interrupted
-    collection resumes. --force rebuilds the dataset from the cached policies.
+    Behaviour policies are trained once per (env, seed) with the env's trainer (PPO, or SAC
+    for HalfCheetah; stages/collect.toml) and reused; an interrupted collection resumes, and an
+    off-band one goes on training when its budget was raised. --force rebuilds the dataset
+    from the cached policies. These are Gymnasium v5 datasets built here, scored with D4RL's
+    reference returns, not D4RL's own files.
     """
     result = collect(
         get_task(task),

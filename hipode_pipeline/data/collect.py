@@ -1,9 +1,10 @@
 """`hipode collect`: build D4RL-style MuJoCo datasets here, as Minari datasets.
 
-One PPO run per (env, seed) trains the behaviour policies; its checkpoints, the medium-replay
-transitions and rollout chunks live under `<dataset root>/collect/<env>-seed<seed>/`, so each
-policy is trained once and reused by every kind, and an interrupted collection resumes from
-the last checkpoint and chunk. The recipe is stages/collect.toml.
+One training run per (env, seed), PPO or SAC as the recipe says, trains the behaviour
+policies; its checkpoints, the medium-replay transitions and rollout chunks live under
+`<dataset root>/collect/<env>-seed<seed>/`, so each policy is trained once and reused by every
+kind, and an interrupted collection resumes from the last checkpoint and chunk. The recipe is
+stages/collect.toml.
 """
 
 from __future__ import annotations
@@ -29,19 +30,23 @@ from hipode_pipeline.data.bands import (
     dataset_band,
     off_band_text,
 )
-from hipode_pipeline.data.minari_write import dataset_dir, split_episodes, write_minari_dataset
+from hipode_pipeline.data.env_batch import make_env
+from hipode_pipeline.data.minari_write import (
+    dataset_dir,
+    episode_spans,
+    split_episodes,
+    write_minari_dataset,
+)
+from hipode_pipeline.data.policies import BehaviourPolicy, load_policy, save_policy
 from hipode_pipeline.data.ppo import (
     ActionFn,
-    GaussianPolicy,
     PPOConfig,
     PPOTrainer,
     RolloutBlock,
     load_checkpoint,
-    load_policy,
-    make_env,
     run_policy,
-    save_policy,
 )
+from hipode_pipeline.data.sac import SACConfig, SACTrainer
 from hipode_pipeline.errors import (
     CollectionBusyError,
     CollectionInterrupted,
@@ -62,6 +67,9 @@ POLICIES_BY_KIND = POLICIES_OF_KIND
 STREAM_IDS = {"random": 1, "medium": 2, "expert": 3}
 # tests set this to stop training right after the first checkpoint at or past this many steps
 STOP_AFTER_STEPS: int | None = None
+TRAINERS = {"ppo": PPOTrainer, "sac": SACTrainer}
+# a medium-replay history longer than this many times D4RL's size is subsampled to it
+SUBSAMPLE_ABOVE = 1.5
 
 
 @dataclass(frozen=True)
@@ -70,11 +78,15 @@ class CollectRecipe:
 
     env: str  # env family, e.g. hopper
     profile: str  # "full" (the real recipe) or "quick" (tests)
-    ppo: PPOConfig  # behaviour-policy trainer
+    trainer: str  # behaviour-policy trainer: "ppo" or "sac"
+    ppo: PPOConfig  # PPO's settings (used when trainer is "ppo")
+    sac: SACConfig  # SAC's settings (used when trainer is "sac")
     medium_check_from: float  # normalized recent training return from which policies are evaluated
     medium_range: tuple[float, float]  # evaluated normalized return that makes the medium policy
     # where D4RL's medium policy scores: a medium policy outside it makes the data off-band
     medium_band: tuple[float, float] | None
+    expert_band: tuple[float, float] | None  # the same for the expert policy
+    medium_check_every: int  # env steps between two evaluated medium candidates (0: each iteration)
     medium_max_steps: int  # env steps after which the current policy is medium regardless
     expert_target: float  # evaluated normalized return that ends expert training early
     expert_steps: int  # env-step budget of expert training
@@ -84,12 +96,19 @@ class CollectRecipe:
     rollout_envs: int  # envs stepped side by side in rollouts
     rollout_chunk: int  # transitions per rollout chunk file
     stochastic_rollouts: bool  # sample from the Gaussian policy (else its mean)
+    medium_replay_size: int  # D4RL's medium-replay size: longer histories are subsampled (0: no)
     random_size: int  # transitions of a random dataset
     medium_size: int  # transitions of a medium dataset (and of medium-expert's medium half)
     expert_size: int  # transitions of an expert dataset (and of medium-expert's expert half)
 
     def to_dict(self) -> dict[str, Any]:
-        return {**asdict(self), "ppo": self.ppo.to_dict()}
+        return {**asdict(self), "ppo": self.ppo.to_dict(), "sac": self.sac.to_dict()}
+
+    def trainer_config(self) -> PPOConfig | SACConfig:
+        return self.ppo if self.trainer == "ppo" else self.sac
+
+    def bands(self) -> dict[str, tuple[float, float] | None]:
+        return {"medium": self.medium_band, "expert": self.expert_band}
 
     def rollout_size(self, stream: str) -> int:
         """Transitions of one rollout stream: random, medium or expert."""
@@ -110,23 +129,34 @@ def load_recipe(env: str, profile: str = "full", path: Path | None = None) -> Co
         raise DataFormatError(path, env, f"a [{env}] recipe section")
     values: dict[str, Any] = {}
     ppo: dict[str, Any] = {}
+    sac: dict[str, Any] = {}
     for layer in (data["defaults"], data[env], profiles[profile]):
         layer = dict(layer)
         ppo.update(layer.pop("ppo", {}))
+        sac.update(layer.pop("sac", {}))
         values.update(layer)
-    names = {f for f in CollectRecipe.__dataclass_fields__} - {"env", "profile", "ppo"}
+    names = {f for f in CollectRecipe.__dataclass_fields__} - {"env", "profile", "ppo", "sac"}
     unknown, missing = sorted(set(values) - names), sorted(names - set(values))
     if unknown:
         raise DataFormatError(path, unknown[0], f"one of {sorted(names)}", "an unknown key")
     if missing:
         raise DataFormatError(path, missing[0], "a value in [defaults]", "nothing")
     values["medium_range"] = tuple(float(v) for v in values["medium_range"])
-    band = values["medium_band"]
-    if not isinstance(band, list) or len(band) not in (0, 2):
-        raise DataFormatError(path, "medium_band", "[low, high] or [] (no band)", band)
-    values["medium_band"] = tuple(float(v) for v in band) if band else None
+    for key in ("medium_band", "expert_band"):
+        band = values[key]
+        if not isinstance(band, list) or len(band) not in (0, 2):
+            raise DataFormatError(path, f"{env}.{key}", "[low, high] or [] (no band)", band)
+        values[key] = tuple(float(v) for v in band) if band else None
+    if values["trainer"] not in TRAINERS:
+        raise DataFormatError(
+            path, f"{env}.trainer", f"one of {sorted(TRAINERS)}", values["trainer"]
+        )
     return CollectRecipe(
-        env=env, profile=profile, ppo=PPOConfig.from_dict(ppo, str(path)), **values
+        env=env,
+        profile=profile,
+        ppo=PPOConfig.from_dict(ppo, str(path)),
+        sac=SACConfig.from_dict(sac, str(path)),
+        **values,
     )
 
 
@@ -229,22 +259,26 @@ def train_behaviour_policies(
     need_expert: bool,
     show_progress: bool = True,
 ) -> dict[str, Any]:
-    """Run (or resume) PPO until the medium and, if asked, the expert policy exist.
+    """Run (or resume) the trainer until the medium and, if asked, the expert policy exist.
 
     Returns the milestones: {"medium": info, "expert": info, ...}; the policies are
     work/policy-<name>.pt and the medium-replay transitions work/replay/<start step>.npz.
+    A policy that missed its target by the budget it was trained to is trained on when the
+    recipe's budget has grown since (the checkpoint is where it stopped).
     """
-    checkpoint = work / "ppo.pt"
+    checkpoint = checkpoint_path(work, recipe)
     milestones: dict[str, Any] = {}
-    trainer: PPOTrainer | None = None
     seconds = 0.0
     if checkpoint.exists():
         state = load_checkpoint(checkpoint)
         milestones, seconds = json.loads(state["milestones"]), float(state["wall_seconds"])
         _check_same_recipe(state, recipe, checkpoint)
+        milestones = _reopen_under_larger_budget(milestones, recipe, int(state["steps"]), work)
     if "medium" in milestones and (not need_expert or "expert" in milestones):
         return milestones
-    trainer = PPOTrainer(task.env_id, recipe.ppo, seed, recipe.recent_episodes)
+    trainer = TRAINERS[recipe.trainer](
+        task.env_id, recipe.trainer_config(), seed, recipe.recent_episodes
+    )
     if checkpoint.exists():
         trainer.load_state_dict(state, checkpoint)
     replay_dir = work / "replay"
@@ -255,6 +289,7 @@ def train_behaviour_policies(
             stale.unlink()
     pending: list[RolloutBlock] = []
     pending_start, last_checkpoint = trainer.steps, trainer.steps
+    last_medium_check = -recipe.medium_check_every  # the first candidate is checked at once
     total = recipe.expert_steps if need_expert else recipe.medium_max_steps
     started, start_steps = time.perf_counter(), trainer.steps
 
@@ -285,7 +320,11 @@ def train_behaviour_policies(
 
     with progress(disable=not show_progress) as prog:
         bar = prog.add_task(
-            f"PPO {task.env}", total=total, completed=trainer.steps, rate="", info=""
+            f"{recipe.trainer.upper()} {task.env}",
+            total=total,
+            completed=trainer.steps,
+            rate="",
+            info="",
         )
         while not ("medium" in milestones and (not need_expert or "expert" in milestones)):
             block, _ = trainer.train_iteration()
@@ -296,7 +335,9 @@ def train_behaviour_policies(
             if "medium" not in milestones:
                 pending.append(block)
                 check: dict[str, Any] = {}
-                if enough and normalized >= recipe.medium_check_from:
+                due = trainer.steps - last_medium_check >= recipe.medium_check_every
+                if enough and due and normalized >= recipe.medium_check_from:
+                    last_medium_check = trainer.steps
                     check = policy_check(
                         task, recipe, trainer.policy(), seed, "medium", trainer.iteration
                     )
@@ -346,8 +387,42 @@ def train_behaviour_policies(
     return milestones
 
 
+def checkpoint_path(work: Path, recipe: CollectRecipe) -> Path:
+    return work / f"{recipe.trainer}.pt"
+
+
+def reopened_milestones(milestones: dict[str, Any], recipe: CollectRecipe, steps: int) -> list[str]:
+    """The policies that missed their target only because the budget ran out, which has grown
+    since: their search goes on from the checkpoint (`steps`). A medium search can go on only
+    if no expert training followed it (its replay history must stay contiguous)."""
+    medium, expert = milestones.get("medium"), milestones.get("expert")
+    if (
+        medium
+        and not medium["target_reached"]
+        and steps == medium["train_steps"] < recipe.medium_max_steps
+    ):
+        return ["medium"]
+    if expert and not expert["target_reached"] and steps < recipe.expert_steps:
+        return ["expert"]
+    return []
+
+
+def _reopen_under_larger_budget(
+    milestones: dict[str, Any], recipe: CollectRecipe, steps: int, work: Path
+) -> dict[str, Any]:
+    """Milestones without the reopened ones; their evaluations and rollouts are dropped too."""
+    reopened = reopened_milestones(milestones, recipe, steps)
+    for name in reopened:
+        for stale in work.glob(f"eval-{name}-*.json"):
+            stale.unlink()
+        for folder in (work / "rollouts").glob(f"{name}-*"):
+            for chunk in folder.glob("*.npz"):
+                chunk.unlink()
+    return {k: v for k, v in milestones.items() if k not in reopened}
+
+
 def policy_returns(
-    task: Task, policy: GaussianPolicy, episodes: int, seed: int, deterministic: bool
+    task: Task, policy: BehaviourPolicy, episodes: int, seed: int, deterministic: bool
 ) -> np.ndarray:
     """Returns of a behaviour policy through the one evaluation path every learner uses."""
     rng = np.random.default_rng(seed)
@@ -363,7 +438,7 @@ def policy_returns(
 def policy_check(
     task: Task,
     recipe: CollectRecipe,
-    policy: GaussianPolicy,
+    policy: BehaviourPolicy,
     seed: int,
     stream: str,
     iteration: int,
@@ -381,12 +456,16 @@ def policy_check(
     return {"mean": mean, "normalized": task.normalized_score(mean), "seed": check_seed}
 
 
+BUDGETS = ("medium_max_steps", "expert_steps")
+
+
 def _targets(recipe: CollectRecipe) -> dict[str, Any]:
     return {
         name: getattr(recipe, name)
         for name in (
             "medium_check_from",
             "medium_range",
+            "medium_check_every",
             "medium_max_steps",
             "expert_target",
             "expert_steps",
@@ -398,9 +477,10 @@ def _check_same_recipe(state: dict[str, Any], recipe: CollectRecipe, checkpoint:
     """A work folder belongs to one training recipe: never mix policies of two profiles."""
     found = {**json.loads(state["config"]), **json.loads(state.get("targets", "{}"))}
     # through JSON, as stored, so tuples compare equal to the lists they become
-    expected = json.loads(json.dumps({**recipe.ppo.to_dict(), **_targets(recipe)}))
-    # checkpoints written before targets were recorded are compared on the PPO config alone
-    differing = sorted(k for k in found if found[k] != expected.get(k))
+    expected = json.loads(json.dumps({**recipe.trainer_config().to_dict(), **_targets(recipe)}))
+    # checkpoints written before targets were recorded are compared on the PPO config alone;
+    # budgets may grow (a missed target is then searched on)
+    differing = sorted(k for k in found if found[k] != expected.get(k) and k not in BUDGETS)
     if differing:
         raise DataFormatError(
             checkpoint,
@@ -442,7 +522,7 @@ def rollout_chunks(
     seed: int,
     stream: str,
     size: int,
-    policy: GaussianPolicy | None,
+    policy: BehaviourPolicy | None,
     show_progress: bool = True,
 ) -> tuple[list[RolloutBlock], float, int]:
     """`size` transitions of `policy` (None: uniform random) in chunk files, reusing those on disk.
@@ -500,7 +580,7 @@ def _uniform_actions(task: Task) -> ActionFn:
     return lambda obs, rng: rng.uniform(low, high, size=(obs.shape[0], low.size))
 
 
-def _policy_actions(policy: GaussianPolicy, recipe: CollectRecipe) -> ActionFn:
+def _policy_actions(policy: BehaviourPolicy, recipe: CollectRecipe) -> ActionFn:
     return lambda obs, rng: policy.sample(obs, rng, not recipe.stochastic_rollouts)
 
 
@@ -591,9 +671,9 @@ def collect(
             f"{task.local_dataset_id} at {result.path}: the behaviour policy "
             f"{off_band_text(result.band)}; the dataset is written and marked off-band in its "
             f"metadata, and augment and train refuse it without {ALLOW_FLAG}. Its policies "
-            f"stay in {work_dir(use_datasets_root(root), task.env, seed)}; to build it again, "
-            "raise the training budget in stages/collect.toml and collect with another --seed "
-            "(a finished medium search does not continue under a new budget yet)"
+            f"stay in {work_dir(use_datasets_root(root), task.env, seed)}; raise the "
+            "training budget (medium_max_steps / expert_steps) in stages/collect.toml and run "
+            "this collect again: training goes on from its last checkpoint"
         )
     return result
 
@@ -610,10 +690,16 @@ def _collect(
         )
     root = use_datasets_root(root)
     final = dataset_dir(root, task.local_dataset_id)
-    if final.exists() and not force:
-        return _existing_result(task, final, started)
     recipe = load_recipe(task.env, profile)
     work = work_dir(root, task.env, seed)
+    if final.exists() and not force:
+        existing = _existing_result(task, final, started)
+        if not (
+            existing.band and existing.band["in_band"] is False and _can_search_on(work, recipe)
+        ):
+            return existing
+        # an off-band dataset whose policy search can go on under the grown budget is rebuilt
+        force = True
     work.mkdir(parents=True, exist_ok=True)
     # PPO's networks are tiny: a second thread only adds spinning (restored for later stages)
     with work_lock(work), torch_threads(1):
@@ -639,12 +725,12 @@ def _collect_in(
     milestones: dict[str, Any] = {}
     if needed:
         t0 = time.perf_counter()
-        steps_before = _checkpoint_steps(work)
+        steps_before = _checkpoint_steps(work, recipe)
         milestones = train_behaviour_policies(
             task, recipe, work, seed, "expert" in needed, show_progress
         )
         phases["train"] = time.perf_counter() - t0
-        trained = _checkpoint_steps(work) - steps_before
+        trained = _checkpoint_steps(work, recipe) - steps_before
         if trained > 0:
             speeds["train"] = trained / phases["train"]
 
@@ -654,8 +740,12 @@ def _collect_in(
 
     t0 = time.perf_counter()
     rollout_seconds, rollout_steps = 0.0, 0
+    subsampled: dict[str, Any] | None = None
     if task.kind == "medium-replay":
-        episodes = split_episodes(medium_replay_block(work, milestones["medium"]["train_steps"]))
+        history = medium_replay_block(work, milestones["medium"]["train_steps"])
+        episodes, subsampled = subsample_in_order(
+            history, recipe.medium_replay_size, SUBSAMPLE_ABOVE
+        )
     else:
         parts = []
         for stream in needed or ("random",):
@@ -674,7 +764,7 @@ def _collect_in(
 
     t0 = time.perf_counter()
     transitions = int(sum(len(e["rewards"]) for e in episodes))
-    band = band_record(task.kind, {"medium": recipe.medium_band}, behaviour)
+    band = band_record(task.kind, recipe.bands(), behaviour)
     extra = {
         "hipode": {
             "task": task.name,
@@ -683,7 +773,8 @@ def _collect_in(
             "recipe": recipe.to_dict(),
             "seeds": {
                 "seed": seed,
-                "ppo": seed,
+                "trainer": recipe.trainer,
+                "trainer_seed": seed,
                 "rollouts": {
                     s: [_stream_seed(seed, s, i) for i in range(_n_chunks(recipe, s))]
                     for s in (needed or ("random",))
@@ -694,6 +785,7 @@ def _collect_in(
             "behaviour_policy": behaviour,
             "band": band,
             "dataset_episode_return": _episode_return_stats(episodes, task),
+            "medium_replay_subsampled": subsampled,
             "transitions": transitions,
             "training": {k: v for k, v in milestones.items() if k in ("medium", "expert")},
             "collect_seconds": {k: round(v, 3) for k, v in phases.items()},
@@ -708,7 +800,7 @@ def _collect_in(
         staging=work / "staging",
         ref_min_score=task.ref_min_score,
         ref_max_score=task.ref_max_score,
-        algorithm_name="PPO" if needed else "uniform-random",
+        algorithm_name=recipe.trainer.upper() if needed else "uniform-random",
         description=f"D4RL-style {task.long_name} built by hipode collect "
         f"(profile {profile}, seed {seed})",
         extra_metadata=extra,
@@ -729,15 +821,56 @@ def _collect_in(
     )
 
 
+def _can_search_on(work: Path, recipe: CollectRecipe) -> bool:
+    checkpoint = checkpoint_path(work, recipe)
+    if not checkpoint.exists():
+        return False
+    state = load_checkpoint(checkpoint)
+    milestones = json.loads(state["milestones"])
+    return bool(reopened_milestones(milestones, recipe, int(state["steps"])))
+
+
 def _n_chunks(recipe: CollectRecipe, stream: str) -> int:
     size = recipe.rollout_size(stream)
     per_chunk = -(-recipe.rollout_chunk // recipe.rollout_envs) * recipe.rollout_envs
     return -(-size // per_chunk)
 
 
-def _checkpoint_steps(work: Path) -> int:
-    path = work / "ppo.pt"
+def _checkpoint_steps(work: Path, recipe: CollectRecipe) -> int:
+    path = checkpoint_path(work, recipe)
     return int(load_checkpoint(path)["steps"]) if path.exists() else 0
+
+
+def subsample_in_order(
+    history: RolloutBlock, size: int, above: float
+) -> tuple[list[dict[str, np.ndarray]], dict[str, Any] | None]:
+    """The history's episodes; if it holds more than `above` x `size` transitions, whole
+    episodes evenly spread over training time are kept (in time order) until about `size`.
+
+    Returns the episodes and what was done (None when the whole history is kept)."""
+    episodes = split_episodes(history)
+    total = history.rewards.size
+    if size <= 0 or total <= above * size:
+        return episodes, None
+    spans = episode_spans(history)
+    order = sorted(range(len(episodes)), key=lambda i: (spans[i][1], spans[i][0]))
+    fraction, seen, kept_steps, kept = size / total, 0, 0, []
+    for i in order:
+        seen += len(episodes[i]["rewards"])
+        # keep an episode whenever the kept share has fallen behind the target share
+        if kept_steps < fraction * seen:
+            kept.append(episodes[i])
+            kept_steps += len(episodes[i]["rewards"])
+    record = {
+        "history_transitions": int(total),
+        "history_episodes": len(episodes),
+        "target_transitions": int(size),
+        "kept_transitions": int(kept_steps),
+        "kept_episodes": len(kept),
+        "rule": "whole episodes in order of their first step, kept whenever the kept share "
+        "of transitions so far is below size / history",
+    }
+    return kept, record
 
 
 def _trim_episodes(episodes: list[dict[str, np.ndarray]], size: int) -> list[dict[str, np.ndarray]]:

@@ -21,36 +21,44 @@ from hipode_pipeline.errors import OverwriteError
 from hipode_pipeline.paths import DATASETS_ENV_VAR
 
 
+def episode_spans(block: RolloutBlock) -> list[tuple[int, int, int]]:
+    """(env, start step, end step) of each episode of a (step, env) block, env by env, in the
+    order split_episodes returns them; the last one of each env ends with the block."""
+    ends_flags = block.terminations | block.truncations
+    spans = []
+    for env in range(block.rewards.shape[1]):
+        ends = np.flatnonzero(
+            ends_flags[:, env] | (np.arange(len(ends_flags)) == len(ends_flags) - 1)
+        )
+        starts = np.concatenate([[0], ends[:-1] + 1])
+        spans += [(env, int(a), int(b)) for a, b in zip(starts, ends + 1, strict=True)]
+    return spans
+
+
 def split_episodes(block: RolloutBlock) -> list[dict[str, np.ndarray]]:
     """Cut each env's stream of a (step, env) block into Minari episodes.
 
     An episode still running at the end of the block is cut there and marked truncated, the
     same flag a time limit sets: its last state is not terminal.
     """
-    ends_flags = block.terminations | block.truncations
     truncations = block.truncations.copy()
-    truncations[-1] |= ~ends_flags[-1]
+    truncations[-1] |= ~(block.terminations | block.truncations)[-1]
     episodes = []
-    for env in range(block.rewards.shape[1]):
-        ends = np.flatnonzero(
-            ends_flags[:, env] | (np.arange(len(ends_flags)) == len(ends_flags) - 1)
+    for env, start, end in episode_spans(block):
+        episodes.append(
+            {
+                "observations": np.concatenate(
+                    [
+                        block.observations[start:end, env],
+                        block.next_observations[end - 1 : end, env],
+                    ]
+                ),
+                "actions": block.actions[start:end, env],
+                "rewards": block.rewards[start:end, env],
+                "terminations": block.terminations[start:end, env],
+                "truncations": truncations[start:end, env],
+            }
         )
-        starts = np.concatenate([[0], ends[:-1] + 1])
-        for start, end in zip(starts, ends + 1, strict=True):
-            episodes.append(
-                {
-                    "observations": np.concatenate(
-                        [
-                            block.observations[start:end, env],
-                            block.next_observations[end - 1 : end, env],
-                        ]
-                    ),
-                    "actions": block.actions[start:end, env],
-                    "rewards": block.rewards[start:end, env],
-                    "terminations": block.terminations[start:end, env],
-                    "truncations": truncations[start:end, env],
-                }
-            )
     return episodes
 
 

@@ -17,17 +17,13 @@ from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
-import gymnasium as gym
-import mujoco
 import numpy as np
 import torch
 from torch import nn
 
+from hipode_pipeline.data.env_batch import EnvBatch, rng_from_state
 from hipode_pipeline.errors import DataFormatError
-from hipode_pipeline.files import load_torch, save_torch_atomic
-from hipode_pipeline.simulator import make_env_safely
-
-STATE_SPEC = mujoco.mjtState.mjSTATE_INTEGRATION  # physics state incl. solver warm-start
+from hipode_pipeline.files import load_torch
 
 
 @dataclass(frozen=True)
@@ -184,6 +180,7 @@ class GaussianPolicy:
 
     def state_dict(self) -> dict[str, Any]:
         return {
+            "class": "gaussian",
             "weights": [torch.from_numpy(w.copy()) for w, _ in self.layers],
             "biases": [torch.from_numpy(b.copy()) for _, b in self.layers],
             "log_std": torch.from_numpy(np.log(self.std)),
@@ -217,36 +214,8 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
     return load_torch(path, "a checkpoint written by hipode collect")
 
 
-def save_policy(policy: GaussianPolicy, path: Path, info: dict[str, Any]) -> None:
-    save_torch_atomic(path, {"policy": policy.state_dict(), "info": json.dumps(info)})
-
-
-def load_policy(path: Path) -> tuple[GaussianPolicy, dict[str, Any]]:
-    state = load_checkpoint(path)
-    return GaussianPolicy.from_state_dict(state["policy"]), json.loads(state["info"])
-
-
-# ---- environments ----------------------------------------------------------------------------
-
-
-def make_env(env_id: str) -> tuple[gym.Env, int]:
-    """The bare MuJoCo env and its time limit (applied by us, so it can be checkpointed)."""
-    env = make_env_safely(env_id)
-    return env.unwrapped, int(env.spec.max_episode_steps)
-
-
-def clip_actions(env: gym.Env, raw_actions: np.ndarray) -> np.ndarray:
-    return np.clip(raw_actions, env.action_space.low, env.action_space.high)
-
-
 def _rng_state_json(rng: np.random.Generator) -> str:
     return json.dumps(rng.bit_generator.state)
-
-
-def _rng_from_json(text: str) -> np.random.Generator:
-    rng = np.random.Generator(np.random.PCG64())
-    rng.bit_generator.state = json.loads(text)
-    return rng
 
 
 @dataclass
@@ -263,6 +232,25 @@ class RolloutBlock:
     def arrays(self) -> dict[str, np.ndarray]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
+    @classmethod
+    def empty(cls, steps: int, num_envs: int, obs_dim: int, act_dim: int) -> RolloutBlock:
+        return cls(
+            observations=np.empty((steps, num_envs, obs_dim)),
+            actions=np.empty((steps, num_envs, act_dim), np.float32),
+            rewards=np.empty((steps, num_envs)),
+            next_observations=np.empty((steps, num_envs, obs_dim)),
+            terminations=np.zeros((steps, num_envs), bool),
+            truncations=np.zeros((steps, num_envs), bool),
+        )
+
+    def record(self, t: int, observations, actions, step: tuple[np.ndarray, ...]) -> list[float]:
+        """Store step t (EnvBatch.step's result); returns the returns of the ended episodes."""
+        next_obs, rewards, terminations, truncations, finished = step
+        self.observations[t], self.actions[t] = observations, actions
+        self.next_observations[t], self.rewards[t] = next_obs, rewards
+        self.terminations[t], self.truncations[t] = terminations, truncations
+        return finished
+
 
 class PPOTrainer:
     """PPO over a list of environments; `train_iteration()` is one rollout plus one update."""
@@ -271,26 +259,20 @@ class PPOTrainer:
         self.env_id, self.config, self.seed = env_id, config, seed
         torch.manual_seed(seed)
         self.rng = np.random.default_rng(seed)
-        made = [make_env(env_id) for _ in range(config.num_envs)]
-        self.envs, self.time_limit = [e for e, _ in made], made[0][1]
-        self.obs_dim = int(self.envs[0].observation_space.shape[0])
-        self.act_dim = int(self.envs[0].action_space.shape[0])
+        self.envs = EnvBatch(env_id, config.num_envs, seed)
+        self.obs_dim, self.act_dim = self.envs.obs_dim, self.envs.act_dim
         self.model = ActorCritic(self.obs_dim, self.act_dim, config.hidden, config.init_log_std)
         self.optimizer = torch.optim.Adam(
             self.model.parameters(), lr=config.learning_rate, eps=1e-5
         )
         self.obs_rms = RunningMeanStd((self.obs_dim,))
         self.ret_rms = RunningMeanStd(())
-        # each env gets its own seed once; later resets draw from the env's own generator
-        self.obs = np.stack([env.reset(seed=seed * 1000 + i)[0] for i, env in enumerate(self.envs)])
-        self.episode_steps = np.zeros(config.num_envs, np.int64)
-        self.episode_returns = np.zeros(config.num_envs, np.float64)
         self.discounted_returns = np.zeros(config.num_envs, np.float64)
         self.recent_returns: deque[float] = deque(maxlen=recent_episodes)
         self.episodes_done = 0
         self.steps = 0
         self.iteration = 0
-        self.obs_rms.update(self.obs)
+        self.obs_rms.update(self.envs.obs)
 
     # -- acting --------------------------------------------------------------------------------
 
@@ -299,37 +281,17 @@ class PPOTrainer:
 
     def _collect(self) -> tuple[RolloutBlock, np.ndarray]:
         """Step every env `rollout_steps` times; returns raw transitions and unclipped actions."""
-        c, n = self.config, self.config.num_envs
-        block = RolloutBlock(
-            observations=np.empty((c.rollout_steps, n, self.obs_dim)),
-            actions=np.empty((c.rollout_steps, n, self.act_dim), np.float32),
-            rewards=np.empty((c.rollout_steps, n)),
-            next_observations=np.empty((c.rollout_steps, n, self.obs_dim)),
-            terminations=np.zeros((c.rollout_steps, n), bool),
-            truncations=np.zeros((c.rollout_steps, n), bool),
-        )
+        c, n, envs = self.config, self.config.num_envs, self.envs
+        block = RolloutBlock.empty(c.rollout_steps, n, self.obs_dim, self.act_dim)
         raw_actions = np.empty((c.rollout_steps, n, self.act_dim))
         policy = self.policy()
         for t in range(c.rollout_steps):
-            raw = policy.sample(self.obs, self.rng)
-            clipped = clip_actions(self.envs[0], raw)
-            block.observations[t], raw_actions[t], block.actions[t] = self.obs, raw, clipped
-            for i, env in enumerate(self.envs):
-                next_obs, reward, terminated, _, _ = env.step(clipped[i])
-                self.episode_steps[i] += 1
-                truncated = not terminated and self.episode_steps[i] >= self.time_limit
-                block.next_observations[t, i], block.rewards[t, i] = next_obs, reward
-                block.terminations[t, i], block.truncations[t, i] = terminated, truncated
-                if terminated or truncated:
-                    next_obs, _ = env.reset()
-                self.obs[i] = next_obs
-            self.episode_returns += block.rewards[t]
-            ended = block.terminations[t] | block.truncations[t]
-            if ended.any():
-                self.recent_returns.extend(self.episode_returns[ended].tolist())
-                self.episodes_done += int(ended.sum())
-                self.episode_returns[ended] = 0.0
-                self.episode_steps[ended] = 0
+            raw = policy.sample(envs.obs, self.rng)
+            clipped = envs.clip(raw)
+            raw_actions[t] = raw
+            finished = block.record(t, envs.obs, clipped, envs.step(clipped))
+            self.recent_returns.extend(finished)
+            self.episodes_done += len(finished)
             self.obs_rms.update(block.next_observations[t])
         self.steps += c.rollout_steps * n
         return block, raw_actions
@@ -427,10 +389,6 @@ class PPOTrainer:
     # -- checkpoints ---------------------------------------------------------------------------
 
     def state_dict(self) -> dict[str, Any]:
-        size = mujoco.mj_stateSize(self.envs[0].model, STATE_SPEC)
-        physics = np.empty((len(self.envs), size))
-        for i, env in enumerate(self.envs):
-            mujoco.mj_getState(env.model, env.data, physics[i], STATE_SPEC)
         return {
             "env_id": self.env_id,
             "config": json.dumps(self.config.to_dict()),
@@ -445,11 +403,7 @@ class PPOTrainer:
             "recent_returns": list(self.recent_returns),
             "rng": _rng_state_json(self.rng),
             "torch_rng": torch.get_rng_state(),
-            "env_rngs": json.dumps([env.np_random.bit_generator.state for env in self.envs]),
-            "physics": torch.from_numpy(physics),
-            "obs": torch.from_numpy(self.obs.copy()),
-            "episode_steps": torch.from_numpy(self.episode_steps.copy()),
-            "episode_returns": torch.from_numpy(self.episode_returns.copy()),
+            **self.envs.state_dict(),  # the envs' keys at the top level, as before EnvBatch
             "discounted_returns": torch.from_numpy(self.discounted_returns.copy()),
         }
 
@@ -469,16 +423,9 @@ class PPOTrainer:
         self.steps, self.iteration = int(state["steps"]), int(state["iteration"])
         self.episodes_done = int(state["episodes_done"])
         self.recent_returns = deque(state["recent_returns"], maxlen=self.recent_returns.maxlen)
-        self.rng = _rng_from_json(state["rng"])
+        self.rng = rng_from_state(json.loads(state["rng"]))
         torch.set_rng_state(state["torch_rng"])
-        for env, rng_state, physics in zip(
-            self.envs, json.loads(state["env_rngs"]), state["physics"].numpy(), strict=True
-        ):
-            env.np_random = _rng_from_json(json.dumps(rng_state))
-            mujoco.mj_setState(env.model, env.data, physics, STATE_SPEC)
-        self.obs = state["obs"].numpy().copy()
-        self.episode_steps = state["episode_steps"].numpy().copy()
-        self.episode_returns = state["episode_returns"].numpy().copy()
+        self.envs.load_state_dict(state)
         self.discounted_returns = state["discounted_returns"].numpy().copy()
 
 
@@ -501,35 +448,11 @@ def run_policy(
     marks the cut). `on_step(steps_done, finished_returns)` feeds progress displays.
     """
     rng = np.random.default_rng(seed)
-    made = [make_env(env_id) for _ in range(num_envs)]
-    envs, time_limit = [e for e, _ in made], made[0][1]
-    obs = np.stack([env.reset(seed=seed * 1000 + i)[0] for i, env in enumerate(envs)])
-    obs_dim, act_dim = obs.shape[1], envs[0].action_space.shape[0]
-    block = RolloutBlock(
-        observations=np.empty((steps_per_env, num_envs, obs_dim)),
-        actions=np.empty((steps_per_env, num_envs, act_dim), np.float32),
-        rewards=np.empty((steps_per_env, num_envs)),
-        next_observations=np.empty((steps_per_env, num_envs, obs_dim)),
-        terminations=np.zeros((steps_per_env, num_envs), bool),
-        truncations=np.zeros((steps_per_env, num_envs), bool),
-    )
-    episode_steps, episode_returns = np.zeros(num_envs, np.int64), np.zeros(num_envs)
+    envs = EnvBatch(env_id, num_envs, seed)
+    block = RolloutBlock.empty(steps_per_env, num_envs, envs.obs_dim, envs.act_dim)
     for t in range(steps_per_env):
-        actions = clip_actions(envs[0], act(obs, rng))
-        block.observations[t], block.actions[t] = obs, actions
-        for i, env in enumerate(envs):
-            next_obs, reward, terminated, _, _ = env.step(actions[i])
-            episode_steps[i] += 1
-            truncated = not terminated and episode_steps[i] >= time_limit
-            block.next_observations[t, i], block.rewards[t, i] = next_obs, reward
-            block.terminations[t, i], block.truncations[t, i] = terminated, truncated
-            if terminated or truncated:
-                next_obs, _ = env.reset()
-            obs[i] = next_obs
-        episode_returns += block.rewards[t]
-        ended = block.terminations[t] | block.truncations[t]
-        finished = episode_returns[ended].tolist()
-        episode_returns[ended], episode_steps[ended] = 0.0, 0
+        actions = envs.clip(act(envs.obs, rng))
+        finished = block.record(t, envs.obs, actions, envs.step(actions))
         if on_step is not None:
             on_step(t + 1, finished)
     return block
