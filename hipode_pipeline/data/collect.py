@@ -258,10 +258,11 @@ def train_behaviour_policies(
     seed: int,
     need_expert: bool,
     show_progress: bool = True,
-) -> dict[str, Any]:
+) -> tuple[dict[str, Any], int]:
     """Run (or resume) the trainer until the medium and, if asked, the expert policy exist.
 
-    Returns the milestones: {"medium": info, "expert": info, ...}; the policies are
+    Returns the milestones ({"medium": info, "expert": info, ...}) and the env steps trained
+    in this call; the policies are
     work/policy-<name>.pt and the medium-replay transitions work/replay/<start step>.npz.
     A policy that missed its target by the budget it was trained to is trained on when the
     recipe's budget has grown since (the checkpoint is where it stopped).
@@ -275,7 +276,7 @@ def train_behaviour_policies(
         _check_same_recipe(state, recipe, checkpoint)
         milestones = _reopen_under_larger_budget(milestones, recipe, int(state["steps"]), work)
     if "medium" in milestones and (not need_expert or "expert" in milestones):
-        return milestones
+        return milestones, 0
     trainer = TRAINERS[recipe.trainer](
         task.env_id, recipe.trainer_config(), seed, recipe.recent_episodes
     )
@@ -384,7 +385,7 @@ def train_behaviour_policies(
                 rate=rate_text(trainer.steps - start_steps, elapsed),
                 info=f"return {ret:,.0f} ({normalized:.1f} normalized, {goal} {target:g})",
             )
-    return milestones
+    return milestones, trainer.steps - start_steps
 
 
 def checkpoint_path(work: Path, recipe: CollectRecipe) -> Path:
@@ -725,12 +726,10 @@ def _collect_in(
     milestones: dict[str, Any] = {}
     if needed:
         t0 = time.perf_counter()
-        steps_before = _checkpoint_steps(work, recipe)
-        milestones = train_behaviour_policies(
+        milestones, trained = train_behaviour_policies(
             task, recipe, work, seed, "expert" in needed, show_progress
         )
         phases["train"] = time.perf_counter() - t0
-        trained = _checkpoint_steps(work, recipe) - steps_before
         if trained > 0:
             speeds["train"] = trained / phases["train"]
 
@@ -834,11 +833,6 @@ def _n_chunks(recipe: CollectRecipe, stream: str) -> int:
     size = recipe.rollout_size(stream)
     per_chunk = -(-recipe.rollout_chunk // recipe.rollout_envs) * recipe.rollout_envs
     return -(-size // per_chunk)
-
-
-def _checkpoint_steps(work: Path, recipe: CollectRecipe) -> int:
-    path = checkpoint_path(work, recipe)
-    return int(load_checkpoint(path)["steps"]) if path.exists() else 0
 
 
 def subsample_in_order(

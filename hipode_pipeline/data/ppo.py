@@ -9,11 +9,9 @@ bit-for-bit: weights, optimizer, normalizers, RNG states and each environment's 
 
 from __future__ import annotations
 
-import json
 import math
-from collections import deque
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -21,13 +19,13 @@ import numpy as np
 import torch
 from torch import nn
 
-from hipode_pipeline.data.env_batch import EnvBatch, rng_from_state
-from hipode_pipeline.errors import DataFormatError
+from hipode_pipeline.data.env_batch import EnvBatch
+from hipode_pipeline.data.trainer_base import BehaviourTrainer, TrainerConfig
 from hipode_pipeline.files import load_torch
 
 
 @dataclass(frozen=True)
-class PPOConfig:
+class PPOConfig(TrainerConfig):
     """PPO settings; the defaults are the plain recipe measured in DESIGN.md."""
 
     num_envs: int = 8  # environments stepped side by side
@@ -48,17 +46,6 @@ class PPOConfig:
     init_log_std: float = 0.0  # initial log std of the Gaussian policy
     obs_clip: float = 10.0  # clip of normalized observations
     reward_clip: float = 10.0  # clip of scaled rewards
-
-    @classmethod
-    def from_dict(cls, values: dict[str, Any], origin: str = "PPO config") -> PPOConfig:
-        known = {f.name: f.type for f in fields(cls)}
-        unknown = sorted(set(values) - set(known))
-        if unknown:
-            raise DataFormatError(origin, unknown[0], f"one of {sorted(known)}", "an unknown key")
-        return cls(**values)
-
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
 
 
 class RunningMeanStd:
@@ -214,10 +201,6 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
     return load_torch(path, "a checkpoint written by hipode collect")
 
 
-def _rng_state_json(rng: np.random.Generator) -> str:
-    return json.dumps(rng.bit_generator.state)
-
-
 @dataclass
 class RolloutBlock:
     """Raw transitions of one rollout, laid out (step, env); observations as the env gives them."""
@@ -252,13 +235,14 @@ class RolloutBlock:
         return finished
 
 
-class PPOTrainer:
+class PPOTrainer(BehaviourTrainer):
     """PPO over a list of environments; `train_iteration()` is one rollout plus one update."""
 
+    name = "PPO"
+
     def __init__(self, env_id: str, config: PPOConfig, seed: int, recent_episodes: int = 20):
-        self.env_id, self.config, self.seed = env_id, config, seed
+        super().__init__(env_id, config, seed, recent_episodes)
         torch.manual_seed(seed)
-        self.rng = np.random.default_rng(seed)
         self.envs = EnvBatch(env_id, config.num_envs, seed)
         self.obs_dim, self.act_dim = self.envs.obs_dim, self.envs.act_dim
         self.model = ActorCritic(self.obs_dim, self.act_dim, config.hidden, config.init_log_std)
@@ -268,10 +252,6 @@ class PPOTrainer:
         self.obs_rms = RunningMeanStd((self.obs_dim,))
         self.ret_rms = RunningMeanStd(())
         self.discounted_returns = np.zeros(config.num_envs, np.float64)
-        self.recent_returns: deque[float] = deque(maxlen=recent_episodes)
-        self.episodes_done = 0
-        self.steps = 0
-        self.iteration = 0
         self.obs_rms.update(self.envs.obs)
 
     # -- acting --------------------------------------------------------------------------------
@@ -382,48 +362,26 @@ class PPOTrainer:
         self.iteration += 1
         return block, stats
 
-    def recent_return(self) -> float:
-        """Mean raw return of the last completed training episodes (nan before the first)."""
-        return float(np.mean(self.recent_returns)) if self.recent_returns else float("nan")
-
     # -- checkpoints ---------------------------------------------------------------------------
 
     def state_dict(self) -> dict[str, Any]:
         return {
-            "env_id": self.env_id,
-            "config": json.dumps(self.config.to_dict()),
-            "seed": self.seed,
+            **self.progress_state(),
             "model": self.model.state_dict(),
             "optimizer": self.optimizer.state_dict(),
             "obs_rms": self.obs_rms.state_dict(),
             "ret_rms": self.ret_rms.state_dict(),
-            "steps": self.steps,
-            "iteration": self.iteration,
-            "episodes_done": self.episodes_done,
-            "recent_returns": list(self.recent_returns),
-            "rng": _rng_state_json(self.rng),
             "torch_rng": torch.get_rng_state(),
             **self.envs.state_dict(),  # the envs' keys at the top level, as before EnvBatch
             "discounted_returns": torch.from_numpy(self.discounted_returns.copy()),
         }
 
     def load_state_dict(self, state: dict[str, Any], origin: str | Path = "checkpoint") -> None:
-        if state["env_id"] != self.env_id or json.loads(state["config"]) != self.config.to_dict():
-            raise DataFormatError(
-                origin,
-                "config",
-                f"a checkpoint of {self.env_id} with this PPO config "
-                "(delete the collect work folder or use another seed)",
-                state["env_id"],
-            )
+        self.load_progress(state, origin)
         self.model.load_state_dict(state["model"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.obs_rms.load_state_dict(state["obs_rms"])
         self.ret_rms.load_state_dict(state["ret_rms"])
-        self.steps, self.iteration = int(state["steps"]), int(state["iteration"])
-        self.episodes_done = int(state["episodes_done"])
-        self.recent_returns = deque(state["recent_returns"], maxlen=self.recent_returns.maxlen)
-        self.rng = rng_from_state(json.loads(state["rng"]))
         torch.set_rng_state(state["torch_rng"])
         self.envs.load_state_dict(state)
         self.discounted_returns = state["discounted_returns"].numpy().copy()

@@ -11,25 +11,23 @@ the buffer, RNG states and each environment's physics state.
 
 from __future__ import annotations
 
-import json
 import math
-from collections import deque
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import torch
 from torch import nn
 
-from hipode_pipeline.data.env_batch import EnvBatch, rng_from_state
+from hipode_pipeline.data.env_batch import EnvBatch
 from hipode_pipeline.data.ppo import RolloutBlock
-from hipode_pipeline.errors import DataFormatError
+from hipode_pipeline.data.trainer_base import BehaviourTrainer, TrainerConfig
 
 LOG_STD_BOUNDS = (-5.0, 2.0)  # keeps the policy's std in [0.007, 7.4] (as rlkit and CleanRL)
 
 
 @dataclass(frozen=True)
-class SACConfig:
+class SACConfig(TrainerConfig):
     """SAC settings (Haarnoja et al. 2018's, except the width, update ratio and env count)."""
 
     num_envs: int = 4  # environments stepped side by side
@@ -43,17 +41,6 @@ class SACConfig:
     start_steps: int = 5_000  # env steps of uniform random actions before the policy acts
     init_temperature: float = 1.0  # entropy weight at the start (learned towards -act_dim)
     buffer_size: int = 3_000_000  # transitions kept (at least the training budget: none dropped)
-
-    @classmethod
-    def from_dict(cls, values: dict[str, Any], origin: str = "SAC config") -> SACConfig:
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise DataFormatError(origin, unknown[0], f"one of {sorted(known)}", "an unknown key")
-        return cls(**values)
-
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
 
 
 class TanhGaussianPolicy:
@@ -197,13 +184,14 @@ class ReplayBuffer:
             getattr(self, key)[: self.size] = value
 
 
-class SACTrainer:
+class SACTrainer(BehaviourTrainer):
     """SAC over a batch of envs; `train_iteration()` is one rollout phase plus its updates."""
 
+    name = "SAC"
+
     def __init__(self, env_id: str, config: SACConfig, seed: int, recent_episodes: int = 20):
-        self.env_id, self.config, self.seed = env_id, config, seed
+        super().__init__(env_id, config, seed, recent_episodes)
         torch.manual_seed(seed)
-        self.rng = np.random.default_rng(seed)
         self.generator = torch.Generator().manual_seed(seed)
         self.envs = EnvBatch(env_id, config.num_envs, seed)
         obs_dim, act_dim = self.envs.obs_dim, self.envs.act_dim
@@ -219,10 +207,6 @@ class SACTrainer:
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=lr)
         self.temperature_opt = torch.optim.Adam([self.log_temperature], lr=lr)
         self.buffer = ReplayBuffer(config.buffer_size, obs_dim, act_dim)
-        self.recent_returns: deque[float] = deque(maxlen=recent_episodes)
-        self.episodes_done = 0
-        self.steps = 0
-        self.iteration = 0
         self.updates = 0
         self.owed_updates = 0.0  # fractional updates carried to the next iteration
 
@@ -306,18 +290,12 @@ class SACTrainer:
         stats["temperature"] = float(self.log_temperature.detach().exp())
         return block, stats
 
-    def recent_return(self) -> float:
-        """Mean raw return of the last completed training episodes (nan before the first)."""
-        return float(np.mean(self.recent_returns)) if self.recent_returns else float("nan")
-
     # -- checkpoints ---------------------------------------------------------------------------
 
     def state_dict(self) -> dict[str, Any]:
         return {
+            **self.progress_state(),
             "trainer": "sac",
-            "env_id": self.env_id,
-            "config": json.dumps(self.config.to_dict()),
-            "seed": self.seed,
             "actor": self.actor.state_dict(),
             "critic": self.critic.state_dict(),
             "target": self.target.state_dict(),
@@ -326,26 +304,14 @@ class SACTrainer:
             "critic_opt": self.critic_opt.state_dict(),
             "temperature_opt": self.temperature_opt.state_dict(),
             "buffer": self.buffer.arrays(),
-            "steps": self.steps,
-            "iteration": self.iteration,
             "updates": self.updates,
             "owed_updates": self.owed_updates,
-            "episodes_done": self.episodes_done,
-            "recent_returns": list(self.recent_returns),
-            "rng": json.dumps(self.rng.bit_generator.state),
             "generator": self.generator.get_state(),
             "envs": self.envs.state_dict(),
         }
 
     def load_state_dict(self, state: dict[str, Any], origin: object = "checkpoint") -> None:
-        if state["env_id"] != self.env_id or json.loads(state["config"]) != self.config.to_dict():
-            raise DataFormatError(
-                origin,
-                "config",
-                f"a checkpoint of {self.env_id} with this SAC config "
-                "(delete the collect work folder or use another seed)",
-                state["env_id"],
-            )
+        self.load_progress(state, origin)
         self.actor.load_state_dict(state["actor"])
         self.critic.load_state_dict(state["critic"])
         self.target.load_state_dict(state["target"])
@@ -355,10 +321,6 @@ class SACTrainer:
         self.critic_opt.load_state_dict(state["critic_opt"])
         self.temperature_opt.load_state_dict(state["temperature_opt"])
         self.buffer.load(state["buffer"])
-        self.steps, self.iteration = int(state["steps"]), int(state["iteration"])
         self.updates, self.owed_updates = int(state["updates"]), float(state["owed_updates"])
-        self.episodes_done = int(state["episodes_done"])
-        self.recent_returns = deque(state["recent_returns"], maxlen=self.recent_returns.maxlen)
-        self.rng = rng_from_state(json.loads(state["rng"]))
         self.generator.set_state(state["generator"])
         self.envs.load_state_dict(state["envs"])
