@@ -1,9 +1,10 @@
 """Environment-specific facts stage one needs: each MuJoCo env's own termination rule, applied to
 observations, so a synthetic transition ends exactly where the real environment would end it.
 
-The rules mirror gymnasium's v5 `is_healthy` with default constructor arguments and the default
-observation layout (x position excluded, so observation[0] is the torso height and
-observation[1] its angle).
+The locomotion rules mirror gymnasium's v5 `is_healthy` with default constructor arguments and
+the default observation layout (x position excluded, so observation[0] is the torso height and
+observation[1] its angle). The Adroit hands of gymnasium-robotics (v1) never terminate: their
+`step` always returns terminated = False and episodes end by the time limit only.
 
 Also the one map from env ids met in data (D4RL dataset names, older gym versions) to the
 Gymnasium env we run: `canonical_env_id`.
@@ -50,8 +51,27 @@ HOPPER = HealthyRanges(
 WALKER2D = HealthyRanges(obs_dim=17, z_range=(0.8, 2.0), angle_range=(-1.0, 1.0), state_range=None)
 HALFCHEETAH_OBS_DIM = 17
 
-TERMINATION_FAMILIES = ("Hopper", "Walker2d", "HalfCheetah")
-KNOWN_ENV_IDS = tuple(f"{family}-v5" for family in TERMINATION_FAMILIES)
+# Adroit hands (gymnasium-robotics, the `adroit` extra): observation sizes of the v1 envs
+ADROIT_ID_PREFIX = "AdroitHand"
+ADROIT_OBS_DIM = {
+    "AdroitHandPen": 45,
+    "AdroitHandDoor": 39,
+    "AdroitHandHammer": 46,
+    "AdroitHandRelocate": 39,
+}
+# observation columns of each family's default layout
+OBS_DIM = {
+    "Hopper": HOPPER.obs_dim,
+    "Walker2d": WALKER2D.obs_dim,
+    "HalfCheetah": HALFCHEETAH_OBS_DIM,
+    **ADROIT_OBS_DIM,
+}
+NEVER_TERMINATING_FAMILIES = ("HalfCheetah", *ADROIT_OBS_DIM)
+TERMINATION_FAMILIES = tuple(OBS_DIM)
+KNOWN_ENV_IDS = (
+    *(f"{family}-v5" for family in ("Hopper", "Walker2d", "HalfCheetah")),
+    *(f"{family}-v1" for family in ADROIT_OBS_DIM),
+)
 
 
 def env_family(env_id: str) -> str:
@@ -64,9 +84,9 @@ def termination_rule(
 ) -> Callable[[np.ndarray], np.ndarray]:
     """`env_id`'s own termination rule: (M, obs_dim) raw observations -> (M,) bool.
 
-    HalfCheetah never terminates. An unknown env or an observation size other than the default
-    layout raises DataFormatError naming `origin`, since a wrong rule would silently corrupt the
-    synthetic data's terminal flags.
+    HalfCheetah and the Adroit hands never terminate. An unknown env or an observation size other
+    than the default layout raises DataFormatError naming `origin`, since a wrong rule would
+    silently corrupt the synthetic data's terminal flags.
     """
     family = env_family(env_id or "")
     if family not in TERMINATION_FAMILIES:
@@ -76,19 +96,16 @@ def termination_rule(
             f"a MuJoCo env with a known termination rule ({', '.join(KNOWN_ENV_IDS)})",
             env_id,
         )
-    expected_dim = {
-        "Hopper": HOPPER.obs_dim,
-        "Walker2d": WALKER2D.obs_dim,
-        "HalfCheetah": HALFCHEETAH_OBS_DIM,
-    }[family]
+    expected_dim = OBS_DIM[family]
     if obs_dim != expected_dim:
         raise DataFormatError(
             origin,
             "observations",
-            f"{expected_dim} columns ({env_id}'s default layout without the x position)",
+            f"{expected_dim} columns ({env_id}'s default observation layout"
+            + (")" if family in ADROIT_OBS_DIM else " without the x position)"),
             obs_dim,
         )
-    if family == "HalfCheetah":
+    if family in NEVER_TERMINATING_FAMILIES:
         return lambda observations: np.zeros(len(observations), dtype=np.bool_)
     return (HOPPER if family == "Hopper" else WALKER2D).terminal
 

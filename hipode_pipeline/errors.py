@@ -54,6 +54,10 @@ class UnsafeEnvError(HipodeError):
     """An environment id that is unknown or would run code from outside gymnasium."""
 
 
+class MissingExtraError(HipodeError):
+    """A feature that needs an optional extra the installation lacks (e.g. `adroit`)."""
+
+
 class DeviceUnavailableError(HipodeError):
     """The user asked for a device this machine does not have."""
 

@@ -196,7 +196,7 @@ def check_run_dir(
     if not (run_dir / "config.json").is_file():
         return "fresh", None
     # the seed and the evaluation schedule must match too: a resumed or finished run keeps its own
-    checked = (*IDENTITY_KEYS, "seed", "eval_every", "eval_episodes")
+    checked = (*IDENTITY_KEYS, "seed", "eval_every", "eval_episodes", "eval_max_episode_steps")
     differing = differing_settings(run_dir, {key: config[key] for key in checked if key in config})
     if differing:
         raise OverwriteError(

@@ -8,17 +8,20 @@ qvel = obs[nq-1:].
 
 from __future__ import annotations
 
+import contextlib
+import io
 from pathlib import Path
 
 import gymnasium as gym
 import mujoco
 import numpy as np
 
-from hipode_pipeline.envs import env_family
-from hipode_pipeline.errors import DataFormatError, UnsafeEnvError
+from hipode_pipeline.envs import ADROIT_ID_PREFIX, env_family
+from hipode_pipeline.errors import DataFormatError, MissingExtraError, UnsafeEnvError
 
-# only environments implemented by gymnasium itself are ever constructed
-SAFE_ENTRY_POINT_PREFIX = "gymnasium.envs."
+# only environments implemented by gymnasium itself, or gymnasium-robotics' Adroit hands (the
+# `adroit` extra), are ever constructed
+SAFE_ENTRY_POINT_PREFIXES = ("gymnasium.envs.", "gymnasium_robotics.envs.adroit_hand.")
 # env families whose observation is [qpos[1:], qvel] (x position excluded)
 RESTORABLE_FAMILIES = ("Hopper", "Walker2d", "HalfCheetah")
 # Hopper and Walker2d clip the velocities in their observation to this bound; HalfCheetah does not
@@ -35,8 +38,9 @@ def check_env_id(env_id: object, origin: str | Path | None = None) -> gym.envs.r
     the field "env_id".
     """
     expected = (
-        "the id of an environment registered by gymnasium itself "
-        f"(entry point under '{SAFE_ENTRY_POINT_PREFIX}'), e.g. Hopper-v5"
+        "the id of an environment registered by gymnasium itself or an Adroit env of "
+        f"gymnasium-robotics (entry point under {' or '.join(SAFE_ENTRY_POINT_PREFIXES)}), "
+        "e.g. Hopper-v5"
     )
     problem: str | None = None
     spec = None
@@ -46,12 +50,13 @@ def check_env_id(env_id: object, origin: str | Path | None = None) -> gym.envs.r
         # gym.make would import the module named before the colon
         problem = "a module path"
     else:
+        register_adroit_envs(env_id)
         spec = gym.envs.registry.get(env_id)
         if spec is None:
             problem = "not registered"
         elif not (
             isinstance(spec.entry_point, str)
-            and spec.entry_point.startswith(SAFE_ENTRY_POINT_PREFIX)
+            and spec.entry_point.startswith(SAFE_ENTRY_POINT_PREFIXES)
         ):
             problem = f"registered with a foreign entry point {spec.entry_point!r}"
     if problem is None:
@@ -59,6 +64,26 @@ def check_env_id(env_id: object, origin: str | Path | None = None) -> gym.envs.r
     if origin is not None:
         raise DataFormatError(origin, "env_id", expected, f"{env_id!r} ({problem})")
     raise UnsafeEnvError(f"env id {env_id!r} refused ({problem}): expected {expected}")
+
+
+def register_adroit_envs(env_id: str) -> None:
+    """Register gymnasium-robotics' envs when `env_id` is an Adroit hand not yet registered.
+
+    Raises MissingExtraError when the `adroit` extra (gymnasium-robotics) is not installed.
+    """
+    if not env_id.startswith(ADROIT_ID_PREFIX) or env_id in gym.envs.registry:
+        return
+    try:
+        # its import prints a notice on every process that door, hammer and relocate's dense
+        # rewards changed in 1.2.1 (the README says so once)
+        with contextlib.redirect_stderr(io.StringIO()):
+            import gymnasium_robotics
+    except ImportError:
+        raise MissingExtraError(
+            f"env {env_id} is an Adroit hand of gymnasium-robotics, which is not installed; "
+            "install the optional extra: pip install -e '.[adroit]'"
+        ) from None
+    gym.register_envs(gymnasium_robotics)
 
 
 def make_env_safely(env_id: str, origin: str | Path | None = None) -> gym.Env:

@@ -52,6 +52,8 @@ class Task:
     ref_min_score: float  # D4RL's random-policy return
     ref_max_score: float  # D4RL's expert return
     params: dict[str, AugmentParams] = field(repr=False)
+    # evaluation horizon when D4RL's is shorter than the registered env's (pen: 100), else None
+    max_episode_steps: int | None = None
 
     @property
     def long_name(self) -> str:
@@ -59,7 +61,11 @@ class Task:
 
     @property
     def local_dataset_id(self) -> str:
-        """The Minari id `hipode collect` writes this task's source dataset to."""
+        """The Minari id of this task's source in the local store: the one `hipode collect`
+        writes, or for data that cannot be collected here (Adroit's human demonstrations),
+        Minari's own id of D4RL's dataset (D4RL/pen/human-v2)."""
+        if not self.collectable:
+            return f"D4RL/{self.env}/{self.kind}-v2"
         return f"local/{self.env}/{self.kind}-v0"
 
     @property
@@ -120,6 +126,7 @@ def all_tasks() -> dict[str, Task]:
             ref_min_score=float(env["ref_min_score"]),
             ref_max_score=float(env["ref_max_score"]),
             params=params,
+            max_episode_steps=env.get("max_episode_steps"),
         )
     return tasks
 

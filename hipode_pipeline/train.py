@@ -392,6 +392,13 @@ def train_seeds(
         "env_id": env_id,
         "ref_min_score": ref_min,
         "ref_max_score": ref_max,
+        # only where the task's horizon is shorter than the env's (Adroit pen), so the configs of
+        # every other run stay as they were
+        **(
+            {"eval_max_episode_steps": task_obj.max_episode_steps}
+            if task_obj.max_episode_steps
+            else {}
+        ),
         "source_id": merged.source["id"],
         "source_sha256": merged.source["sha256"],
         "n_real": len(merged.real),
@@ -618,6 +625,7 @@ def make_evaluator(policies, config: dict[str, Any], seeds: Sequence[int]):
             seeds=seeds,
             ref_min_score=config["ref_min_score"],
             ref_max_score=config["ref_max_score"],
+            max_episode_steps=config.get("eval_max_episode_steps"),
         )
 
     return evaluate

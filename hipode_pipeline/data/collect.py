@@ -687,7 +687,8 @@ def _collect(
         raise NotCollectableError(
             f"task '{task.name}' ({task.env_id}, {task.kind}) cannot be collected here: "
             "expected a MuJoCo locomotion task (hopper, halfcheetah, walker2d); "
-            "use its Minari dataset instead"
+            f"put its Minari dataset {task.local_dataset_id} in the local store "
+            "(`minari download` it where the internet is reachable)"
         )
     root = use_datasets_root(root)
     final = dataset_dir(root, task.local_dataset_id)

@@ -76,11 +76,16 @@ def load_source(
         named = _task_or_not_found(spec, root)
         dataset_id = named.local_dataset_id
         if not has_local_dataset(dataset_id, root):
+            build = (
+                f"run `hipode collect {named.name}` to build it"
+                if named.collectable
+                else f"download it where the internet is reachable (`minari download "
+                f"{dataset_id}`) and copy its folder into the store"
+            )
             raise DatasetNotFoundError(
                 f"task {named.name}'s dataset {dataset_id} is not in the local store "
                 f"(looked for {dataset_dir(dataset_id, root) / 'data' / 'metadata.json'}); "
-                f"run `hipode collect {named.name}` to build it, "
-                "or pass a Minari id or a D4RL .hdf5 file"
+                f"{build}, or pass a Minari id or a D4RL .hdf5 file"
             )
         transitions, info = load_minari(dataset_id, root)
         origin = dataset_dir(dataset_id, root) / "data" / METADATA_FILE

@@ -169,6 +169,7 @@ def _train_d3rlpy(
                 seed=seed,
                 ref_min_score=config["ref_min_score"],
                 ref_max_score=config["ref_max_score"],
+                max_episode_steps=config.get("eval_max_episode_steps"),
             )
             evaluations.append({"step": step, **result.summary()})
             metrics_file.write(
