@@ -86,7 +86,7 @@ def run_one(
     normalizer = StateNormalizer.fit(transitions.observations)
     data = generators.transition_tensors(transitions, normalizer, config, seed, device)
     train_loss, heldout_loss = generators.model_losses(models)[name]
-    settings = {**generators.fit_settings(config)[name], "steps": steps}
+    settings = {**generators.fit_settings(config, len(transitions))[name], "steps": steps}
     with tempfile.TemporaryDirectory() as tmp:
         record = training.fit(
             name,

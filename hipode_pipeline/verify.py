@@ -39,6 +39,7 @@ from hipode_pipeline.data.load import load_recorded_source, load_source
 from hipode_pipeline.data.normalizer import StateNormalizer
 from hipode_pipeline.data.transitions import Transitions
 from hipode_pipeline.device import select_device
+from hipode_pipeline.diagnose import matched_novelty, stage_diagnosis, state_errors
 from hipode_pipeline.envs import termination_rule
 from hipode_pipeline.errors import DataFormatError, OverwriteError, SettingError
 from hipode_pipeline.files import (
@@ -104,6 +105,7 @@ class TransitionChecks:
     rows: np.ndarray | None = (
         None  # (K,) row indices: into the artifact (HIPODE), source (baseline)
     )
+    simulated_next: np.ndarray | None = None  # (K, ds) the simulator's next states (not saved)
 
     def summary(self) -> dict[str, Any]:
         n = int(self.next_state_error.size)
@@ -116,6 +118,16 @@ class TransitionChecks:
         result["within_tolerance"] = float(self.within_tolerance.mean())
         result["terminal_agreement"] = float(self.terminal_agrees.mean())
         result["clipped_input_rows"] = int(self.clipped_input.sum())
+        # rows whose input velocities were not clipped: there the simulator's answer is exact
+        exact = ~self.clipped_input
+        result["exact_ground_truth_share"] = float(exact.mean())
+        if exact.any():
+            result["next_state_error_median_exact_rows"] = float(
+                np.median(self.next_state_error[exact])
+            )
+            result["next_state_error_mean_exact_rows"] = float(
+                self.next_state_error[exact].astype(np.float64).mean()
+            )
         result["simulator_rows_per_second"] = n / max(self.simulator_seconds, 1e-9)
         return result
 
@@ -144,6 +156,8 @@ class VerifyReport:
     baseline: TransitionChecks | None  # plain model rollouts, None with --no-baseline
     baseline_details: dict[str, Any]  # behaviour CVAE record, dynamics provenance
     seconds: dict[str, float]  # wall time per phase
+    # per-stage errors, matched-novelty comparison, model-scaled tolerance (needs the baseline)
+    analysis: dict[str, Any] | None = None
     json_path: str | None = None  # where the report was written
     png_path: str | None = None  # where the plot was written
 
@@ -175,6 +189,7 @@ class VerifyReport:
             "hipode": self.hipode.summary(),
             "baseline": None if self.baseline is None else self.baseline.summary(),
             "baseline_details": self.baseline_details,
+            "analysis": self.analysis,
             "seconds": self.seconds,
             "json": self.json_path,
             "png": self.png_path,
@@ -261,11 +276,9 @@ def check_transitions(
         progress_callback=advance,
     )
     seconds = time.perf_counter() - started
-    difference = np.abs(transitions.next_observations.astype(np.float64) - sim_next)
-    state_error = (difference / (next_state_std + STD_EPS)).mean(axis=1)
+    state_error = state_errors(transitions.next_observations, sim_next, next_state_std)
     reward_error = np.abs(transitions.rewards.astype(np.float64) - sim_rewards)
     # a non-finite synthetic value is as far from the simulator as it gets
-    state_error = np.where(np.isfinite(state_error), state_error, np.inf)
     reward_error = np.where(np.isfinite(reward_error), reward_error, np.inf)
     within = (state_error <= tolerance) & (reward_error <= tolerance * (reward_std + STD_EPS))
     next_norm = normalizer.normalize(transitions.next_observations.astype(np.float32))
@@ -280,6 +293,7 @@ def check_transitions(
         terminal_agrees=transitions.terminals.astype(bool) == sim_terminated,
         clipped_input=clipped_velocity_rows(env_id, transitions.observations),
         simulator_seconds=seconds,
+        simulated_next=sim_next,
     )
 
 
@@ -394,6 +408,53 @@ def plain_rollouts(
         timeouts=np.zeros(len(rows), dtype=np.bool_),
     )
     return rollouts, rows
+
+
+def analyse(
+    generators: Generators,
+    env_id: str,
+    synthetic: Transitions,
+    hipode: TransitionChecks,
+    baseline: TransitionChecks,
+    source: Transitions,
+    *,
+    generator_seed: int,
+    sample: int,
+    seed: int,
+    origin: str,
+) -> dict[str, Any]:
+    """Per-stage errors (`diagnose`), HIPODE against the baseline at matched novelty on rows
+    whose ground truth is exact, and both judged at a tolerance scaled to the dynamics model's
+    own one-step error on held-out real transitions."""
+    stages = stage_diagnosis(
+        generators,
+        env_id,
+        synthetic,
+        hipode.simulated_next,
+        source,
+        generator_seed=generator_seed,
+        sample=sample,
+        seed=seed,
+        origin=origin,
+    )
+    mine, theirs = ~hipode.clipped_input, ~baseline.clipped_input
+    model_tolerance = stages["ensemble_one_step_on_real"]["median"]
+    return {
+        "stages": stages,
+        "matched_novelty_exact_rows": matched_novelty(
+            hipode.novelty[mine],
+            hipode.next_state_error[mine],
+            baseline.novelty[theirs],
+            baseline.next_state_error[theirs],
+        ),
+        "model_tolerance": {
+            "definition": "the dynamics ensemble's median one-step next-state error on "
+            "held-out real transitions (source stds per dimension)",
+            "value": model_tolerance,
+            "hipode_within": float((hipode.next_state_error <= model_tolerance).mean()),
+            "baseline_within": float((baseline.next_state_error <= model_tolerance).mean()),
+        },
+    }
 
 
 def _artifact_generators(
@@ -559,6 +620,7 @@ def verify_artifact(
         origin=path,
     )
     details: dict[str, Any] = {}
+    analysis = None
     with console.progress(disable=not show_progress) as prog:
         clock = time.perf_counter()
         hipode_checks = check_transitions(
@@ -598,6 +660,20 @@ def verify_artifact(
             )
             baseline_checks = dataclasses.replace(baseline_checks, rows=baseline_rows)
             seconds["simulate_baseline"] = time.perf_counter() - clock
+            clock = time.perf_counter()
+            analysis = analyse(
+                generators,
+                env_id,
+                synthetic,
+                hipode_checks,
+                baseline_checks,
+                source,
+                generator_seed=_manifest_value(path, manifest, "seeds.generator_training", int),
+                sample=len(synthetic),
+                seed=seed,
+                origin=str(path),
+            )
+            seconds["diagnose"] = time.perf_counter() - clock
     report = VerifyReport(
         artifact=str(path),
         artifact_sha256=file_sha256(path),
@@ -610,6 +686,7 @@ def verify_artifact(
         baseline=baseline_checks,
         baseline_details=details,
         seconds=seconds,
+        analysis=analysis,
         json_path=str(json_path),
         png_path=str(png_path),
     )
@@ -669,12 +746,152 @@ def plot_novelty_vs_error(report: VerifyReport, path: Path) -> None:
     axes.set_ylabel("next-state error vs simulator (source stds, mean over dims)")
     axes.set_title(f"{Path(report.artifact).name} ({report.env_id}): authenticity vs novelty")
     axes.legend(loc="best", fontsize=8)
+    _save_figure(figure, path)
+
+
+def _save_figure(figure, path: Path) -> None:
+    """Write a matplotlib figure as PNG atomically, and free it."""
+    import matplotlib.pyplot as plt
+
     figure.tight_layout()
     try:
         with atomic_path(path) as temp:
             figure.savefig(temp, format="png")
     finally:
         plt.close(figure)
+
+
+STAGE_COLUMNS = ["stage", "rows", "median", "mean", "p90"]
+
+
+def stage_rows(report: VerifyReport) -> list[list[Any]]:
+    """The per-stage errors (source stds per dimension) as table rows."""
+    stages = (report.analysis or {}).get("stages", {})
+    kept = stages.get("kept", {})
+    named = [
+        ("kept: total vs simulator", report.hipode.summary()["n"], kept.get("total")),
+        (
+            "kept: ensemble vs simulator",
+            report.hipode.summary()["n"],
+            kept.get("ensemble_on_kept_rows"),
+        ),
+        ("kept: check distance", report.hipode.summary()["n"], kept.get("check_distance")),
+        ("real: inverse action", stages.get("heldout_rows"), stages.get("inverse_action_on_real")),
+        (
+            "real: recorded action",
+            stages.get("heldout_rows"),
+            stages.get("recorded_action_on_real"),
+        ),
+        (
+            "real: ensemble one step",
+            stages.get("heldout_rows"),
+            stages.get("ensemble_one_step_on_real"),
+        ),
+    ]
+    return [
+        [name, rows, *(round(values[k], 4) for k in ("median", "mean", "p90"))]
+        for name, rows, values in named
+        if values
+    ]
+
+
+SUMMARY_COLUMNS = [
+    "artifact",
+    "env",
+    "HIPODE median (exact rows)",
+    "HIPODE mean (exact rows)",
+    "baseline median (exact rows)",
+    "baseline mean (exact rows)",
+    "matched-novelty ratio",
+    "model tolerance",
+    "HIPODE within model tol %",
+    "baseline within model tol %",
+    "exact rows %",
+    "ensemble 1-step median",
+    "inverse action median",
+]
+
+
+def summary_row(report: VerifyReport) -> list[Any]:
+    """One artifact's line of the across-artifact table (needs the baseline's analysis)."""
+    mine = report.hipode.summary()
+    theirs = report.baseline.summary() if report.baseline is not None else {}
+    analysis = report.analysis or {}
+    stages = analysis.get("stages", {})
+    tolerance = analysis.get("model_tolerance", {})
+
+    def pick(data: dict, *keys: str) -> Any:
+        for key in keys:
+            data = data.get(key) if isinstance(data, dict) else None
+        return None if data is None else round(float(data), 4)
+
+    within = [tolerance.get(k) for k in ("hipode_within", "baseline_within")]
+    return [
+        Path(report.artifact).name,
+        report.env_id,
+        pick(mine, "next_state_error_median_exact_rows"),
+        pick(mine, "next_state_error_mean_exact_rows"),
+        pick(theirs, "next_state_error_median_exact_rows"),
+        pick(theirs, "next_state_error_mean_exact_rows"),
+        pick(analysis, "matched_novelty_exact_rows", "median_ratio"),
+        pick(tolerance, "value"),
+        *[None if w is None else round(100 * w, 1) for w in within],
+        round(100 * mine["exact_ground_truth_share"], 1),
+        pick(stages, "ensemble_one_step_on_real", "median"),
+        pick(stages, "inverse_action_on_real", "median"),
+    ]
+
+
+def summary_paths(out_dir: Path) -> tuple[Path, Path]:
+    return out_dir / "verify-summary.json", out_dir / "verify-summary.png"
+
+
+def write_summary(reports: list[VerifyReport], out_dir: Path) -> tuple[Path, Path]:
+    """The across-artifact table as JSON, and per artifact HIPODE's and the baseline's median
+    error in each shared novelty bin as one plot (atomically)."""
+    json_path, png_path = summary_paths(out_dir)
+    rows = [dict(zip(SUMMARY_COLUMNS, summary_row(r), strict=True)) for r in reports]
+    out_dir.mkdir(parents=True, exist_ok=True)
+    _write_json_atomic(
+        json_path,
+        {
+            "columns": SUMMARY_COLUMNS,
+            "rows": rows,
+            "reports": [r.json_path for r in reports],
+            "definitions": {
+                "exact rows": "rows whose input velocities were not at the observation's "
+                "clipping bound, so the simulator's answer is exact",
+                "matched-novelty ratio": "median over shared novelty bins of HIPODE's median "
+                "next-state error / the baseline's, exact rows only",
+                "model tolerance": "the dynamics ensemble's median one-step error on held-out "
+                "real transitions",
+            },
+        },
+    )
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(figsize=(7.2, 4.8), dpi=120)
+    for index, report in enumerate(reports):
+        bins = ((report.analysis or {}).get("matched_novelty_exact_rows") or {}).get("bins", [])
+        centers = [b["novelty_from"] for b in bins]
+        color = f"C{index % 10}"
+        name = Path(report.artifact).name.split("-eta")[0]
+        for key, style, label in (
+            ("hipode_median", "-", "HIPODE"),
+            ("baseline_median", "--", "plain"),
+        ):
+            values = [b[key] if b[key] is not None else np.nan for b in bins]
+            axes.plot(centers, values, style, marker="o", color=color, label=f"{name} {label}")
+    axes.set_yscale("log")
+    axes.set_xlabel("novelty bin (lower edge, z-scored L2 to the nearest source state)")
+    axes.set_ylabel("median next-state error vs simulator (source stds)")
+    axes.set_title("authenticity at matched novelty, exact rows")
+    axes.legend(fontsize=7)
+    _save_figure(figure, png_path)
+    return json_path, png_path
 
 
 def _write_json_atomic(path: Path, data: dict[str, Any]) -> None:

@@ -113,6 +113,9 @@ def test_train_generators_contract_and_cache(transitions, tmp_path):
             "best_heldout_loss",
             "final_heldout_loss",
             "cached",
+            "budget_steps",
+            "stopped_on_plateau",
+            "member_best_heldout_losses",
         }
     for name in ("state_transition", "inverse_action", "inverse_reward"):
         assert (

@@ -16,9 +16,26 @@ from hipode_pipeline.commands.common import (
     output_folder,
     user_errors,
 )
-from hipode_pipeline.verify import DEFAULT_TOLERANCE, TABLE_COLUMNS, verify_artifact
+from hipode_pipeline.errors import OverwriteError
+from hipode_pipeline.verify import (
+    DEFAULT_TOLERANCE,
+    STAGE_COLUMNS,
+    SUMMARY_COLUMNS,
+    TABLE_COLUMNS,
+    stage_rows,
+    summary_paths,
+    summary_row,
+    verify_artifact,
+    write_summary,
+)
 
-ArtifactArgument = Annotated[Path, typer.Argument(help="The synthetic dataset file (.hdf5).")]
+ArtifactArgument = Annotated[
+    list[Path],
+    typer.Argument(
+        help="The synthetic dataset file(s) (.hdf5); with several, also a summary table across "
+        "them (verify-summary.json / .png in --out-dir, default the first file's folder)."
+    ),
+]
 SampleOption = Annotated[
     int, typer.Option("--sample", help="Synthetic transitions (and baseline rollouts) to check.")
 ]
@@ -50,7 +67,7 @@ def register(app: typer.Typer) -> None:
 
 @user_errors
 def verify(
-    file: ArtifactArgument,
+    files: ArtifactArgument,
     sample: SampleOption = 2000,
     seed: SeedOption = 0,
     tolerance: ToleranceOption = DEFAULT_TOLERANCE,
@@ -61,22 +78,44 @@ def verify(
     json_output: JsonFlag = False,
 ) -> None:
     """Step the simulator from sampled synthetic transitions and report how authentic they are,
-    beside plain model rollouts; writes a JSON report and a novelty-vs-error PNG."""
-    report = verify_artifact(
-        file,
-        sample=sample,
-        seed=seed,
-        tolerance=tolerance,
-        baseline=not no_baseline,
-        root=root,
-        out_dir=out_dir,
-        force=force,
-        show_progress=not json_output,
-    )
+    beside plain model rollouts, stage by stage; writes a JSON report and a novelty-vs-error PNG
+    per artifact."""
+    summary_dir = out_dir if out_dir is not None else Path(files[0]).parent
+    if len(files) > 1 and not force:
+        # checked before any artifact is verified: nothing is half-written
+        existing = [str(p) for p in summary_paths(summary_dir) if p.exists()]
+        if existing:
+            raise OverwriteError(f"{', '.join(existing)} already exist(s); pass --force")
+    reports = [
+        verify_artifact(
+            file,
+            sample=sample,
+            seed=seed,
+            tolerance=tolerance,
+            baseline=not no_baseline,
+            root=root,
+            out_dir=out_dir,
+            force=force,
+            show_progress=not json_output,
+        )
+        for file in files
+    ]
     if json_output:
-        console.print_json(report.to_dict(per_transition=False))
-        return
-    name = Path(report.artifact).name
-    title = f"{report.env_id} simulator vs {name} (tolerance {report.tolerance})"
-    console.out.print(console.table(title, TABLE_COLUMNS, report.rows()))
-    console.err.print(console.plain(f"wrote {report.json_path} and {report.png_path}"))
+        data = [r.to_dict(per_transition=False) for r in reports]
+        console.print_json(data[0] if len(data) == 1 else data)
+    else:
+        for report in reports:
+            name = Path(report.artifact).name
+            title = f"{report.env_id} simulator vs {name} (tolerance {report.tolerance})"
+            console.out.print(console.table(title, TABLE_COLUMNS, report.rows()))
+            if report.analysis is not None:
+                console.out.print(
+                    console.table(f"{name}: stages", STAGE_COLUMNS, stage_rows(report))
+                )
+            console.err.print(console.plain(f"wrote {report.json_path} and {report.png_path}"))
+    if len(reports) > 1:
+        json_path, png_path = write_summary(reports, summary_dir)
+        if not json_output:
+            rows = [summary_row(r) for r in reports]
+            console.out.print(console.table("across artifacts", SUMMARY_COLUMNS, rows))
+            console.err.print(console.plain(f"wrote {json_path} and {png_path}"))

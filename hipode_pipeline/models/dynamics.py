@@ -101,6 +101,13 @@ class DynamicsEnsemble(nn.Module):
         self.min_log_std = nn.Parameter(torch.full((members, 1, out), init_min_log_std))
         self.register_buffer("reward_mean", torch.zeros(()))
         self.register_buffer("reward_std", torch.ones(()))
+        # members sample() draws from (chosen after training, not part of the weights); None: all
+        self.elites: list[int] | None = None
+
+    def set_elites(self, members: list[int] | None) -> None:
+        if members is not None and not (members and all(0 <= m < self.members for m in members)):
+            raise ValueError(f"elites {members}: expected member indices in [0, {self.members})")
+        self.elites = None if members is None else sorted(set(members))
 
     def set_reward_scale(self, mean: float, std: float) -> None:
         self.reward_mean.fill_(float(mean))
@@ -185,15 +192,20 @@ class DynamicsEnsemble(nn.Module):
         """Next normalized states (B, ds) and raw rewards (B,).
 
         Default: per row, a Gaussian sample from a uniformly drawn member (d3rlpy semantics);
-        `use_mean`: the members' mean prediction averaged over the ensemble.
+        `use_mean`: the members' mean prediction averaged over the ensemble. Only the elite
+        members take part when elites are set.
         """
         mean, log_std = self.stats(states_norm, actions)
+        if self.elites is not None:
+            elites = torch.as_tensor(self.elites, device=mean.device)
+            mean, log_std = mean[elites], log_std[elites]
         if use_mean:
             delta = mean.float().mean(0)
         else:
             noise_device = generator.device if generator is not None else mean.device
             batch = states_norm.shape[0]
-            member = torch.randint(self.members, (batch,), generator=generator, device=noise_device)
+            drawn_from = mean.shape[0]
+            member = torch.randint(drawn_from, (batch,), generator=generator, device=noise_device)
             eps = torch.randn((batch, self.state_dim + 1), generator=generator, device=noise_device)
             member, eps = member.to(mean.device), eps.to(mean.device)
             rows = torch.arange(batch, device=mean.device)

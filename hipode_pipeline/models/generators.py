@@ -31,12 +31,14 @@ from hipode_pipeline.files import (
 from hipode_pipeline.models import training
 from hipode_pipeline.models.cvae import CVAE
 from hipode_pipeline.models.dynamics import LOSS_FORMS, DynamicsEnsemble
-from hipode_pipeline.models.value import PENALTY_FORMS, ValueEstimator
+from hipode_pipeline.models.value import PENALTY_FORMS, PENALTY_SCALES, ValueEstimator
 from hipode_pipeline.seeding import derive_seed
 from hipode_pipeline.versions import GENERATOR_CODE, code_digest
 
 MODEL_NAMES = ("state_transition", "value", "inverse_action", "inverse_reward", "dynamics")
-PROFILES = ("full", "quick")
+# "paper": the appendix's sizes and this project's first fixed budgets, kept as they are while
+# "full" (the defaults) may change with measurements; "quick": a few hundred steps per model
+PROFILES = ("full", "paper", "quick")
 CVAE_MODELS = ("state_transition", "inverse_action", "inverse_reward")
 # fields that only some models read; any field not listed here is in every model's cache key
 FIELD_OWNERS: dict[str, tuple[str, ...]] = {
@@ -58,10 +60,18 @@ FIELD_OWNERS: dict[str, tuple[str, ...]] = {
             "value_steps",
             "value_precision",
             "penalty",
+            "penalty_scale",
             "alpha",
             "sigma",
         )
     },
+    # stopping and budgets apply to the models whose best weights are kept (not the value net)
+    **{
+        f: (*CVAE_MODELS, "dynamics")
+        for f in ("plateau_patience", "plateau_tolerance", "budget_epochs")
+    },
+    # elites are chosen after training from the members' held-out losses: no model's weights
+    "dynamics_elites": (),
     **{
         f: ("dynamics",)
         for f in (
@@ -77,6 +87,26 @@ FIELD_OWNERS: dict[str, tuple[str, ...]] = {
             "dynamics_precision",
         )
     },
+}
+
+
+# the appendix's model sizes and the budgets every artifact was built with before the "full"
+# defaults were allowed to move (fixed steps, no stopping, 5 members, raw penalty units)
+PAPER_PROFILE: dict[str, Any] = {
+    "cvae_hidden": 750,
+    "latent_per_state_dim": 2,
+    "value_hidden": 256,
+    "dynamics_members": 5,
+    "dynamics_elites": 0,
+    "dynamics_hidden": (256, 256),
+    "state_transition_steps": 30_000,
+    "inverse_action_steps": 20_000,
+    "inverse_reward_steps": 15_000,
+    "value_steps": 50_000,
+    "dynamics_steps": 30_000,
+    "plateau_patience": 0,
+    "budget_epochs": 0.0,
+    "penalty_scale": "raw",
 }
 
 
@@ -111,10 +141,15 @@ class GeneratorConfig:
     value_batch_size: int = 256  # value minibatch; as many negatives are drawn per step
     value_steps: int = 50_000  # steps of V; final weights kept (TD loss moves with the target)
     penalty: str = "target"  # [decided] negative-sampling penalty: target | l2 | contrastive
+    # units of the target penalty's alpha: "raw" (reward units per z-scored unit of offset, the
+    # paper's) or "value" (the batch's std of V-bar(s) per unit: the same meaning on every task)
+    penalty_scale: str = "raw"
     alpha: float = 1.0  # [paper] penalty weight (per task: stages/tasks.toml)
     sigma: float = 1.0  # [paper] negatives s + U(-sigma, sigma)^d, z-scored units
     # --- forward dynamics ensemble (d3rlpy 1.x ProbabilisticEnsembleDynamics) ---
     dynamics_members: int = 5  # [paper via d3rlpy] ensemble size
+    # members the dynamics check draws from: the lowest held-out losses (0: all; MOPO: 5 of 7)
+    dynamics_elites: int = 0
     dynamics_hidden: tuple[int, ...] = (256, 256)  # [d3rlpy 1.x encoder] hidden layers per member
     dynamics_spectral_norm: bool = False  # d3rlpy 1.x: on; off here: it made members underfit
     dynamics_loss: str = "gaussian_nll"  # gaussian_nll | d3rlpy (e^2 / std + sum log std)
@@ -127,6 +162,13 @@ class GeneratorConfig:
     heldout_fraction: float = 0.05  # [decided] share of source transitions never trained on
     heldout_eval_rows: int = 8192  # held-out rows used per evaluation (caps its cost)
     eval_every: int = 500  # evaluate the held-out loss (and keep bests) every this many steps
+    # stop a CVAE or the ensemble after this many evaluations in a row without its best held-out
+    # loss falling by more than plateau_tolerance of it (0: always the whole budget)
+    plateau_patience: int = 0
+    plateau_tolerance: float = 1e-3
+    # > 0: CVAE and ensemble budgets are this many passes over the training rows (at their batch
+    # size) instead of the fixed *_steps, so they scale with the dataset
+    budget_epochs: float = 0.0
     checkpoint_every: int = 2_000  # write a resumable checkpoint every this many steps
     # fp32 | bf16 autocast, per model family: bf16 kept held-out losses equal within seed noise
     # and ran 1.3-1.7x faster on the CVAEs and the ensemble (bench/results/models_precision.md);
@@ -145,6 +187,24 @@ class GeneratorConfig:
             "latent_clip": (self.latent_clip > 0, "a positive number"),
             "sigma": (math.isfinite(self.sigma) and self.sigma >= 0, "a finite number >= 0"),
             "alpha": (math.isfinite(self.alpha), "a finite number"),
+            "penalty_scale": (
+                self.penalty_scale in PENALTY_SCALES
+                and (self.penalty_scale == "raw" or self.penalty == "target"),
+                f"one of {PENALTY_SCALES} ('value' only with penalty 'target')",
+            ),
+            "plateau_patience": (self.plateau_patience >= 0, "a non-negative integer"),
+            "plateau_tolerance": (
+                math.isfinite(self.plateau_tolerance) and 0 <= self.plateau_tolerance < 1,
+                "a fraction in [0, 1)",
+            ),
+            "budget_epochs": (
+                math.isfinite(self.budget_epochs) and self.budget_epochs >= 0,
+                "a finite number >= 0",
+            ),
+            "dynamics_elites": (
+                0 <= self.dynamics_elites <= self.dynamics_members,
+                f"an integer in [0, dynamics_members = {self.dynamics_members}]",
+            ),
         }
         for name in self.to_dict():
             if name.endswith("_precision") and getattr(self, name) not in training.PRECISIONS:
@@ -166,10 +226,13 @@ class GeneratorConfig:
 
     @classmethod
     def profile(cls, name: str, **overrides: Any) -> GeneratorConfig:
-        """Profile "full" (the real run's budgets) or "quick" (a few hundred steps per model)."""
+        """Profile "full" (the defaults), "paper" (the appendix's sizes and the first fixed
+        budgets, whatever the defaults become) or "quick" (a few hundred steps per model)."""
         if name not in PROFILES:
             raise SettingError(f"generator profile '{name}': expected one of {PROFILES}")
         values: dict[str, Any] = {}
+        if name == "paper":
+            values = dict(PAPER_PROFILE)
         if name == "quick":
             values = {
                 "state_transition_steps": 300,
@@ -266,6 +329,7 @@ def build_models(
             tau=config.value_tau,
             target_update_every=config.value_target_every,
             penalty=config.penalty,
+            penalty_scale=config.penalty_scale,
             alpha=config.alpha,
             sigma=config.sigma,
         ),
@@ -290,18 +354,31 @@ def build_models(
     return models
 
 
-def fit_settings(config: GeneratorConfig) -> dict[str, dict[str, Any]]:
-    """Per model: budget, optimizer settings and what best-weights keeping means for it."""
+def fit_settings(config: GeneratorConfig, train_rows: int) -> dict[str, dict[str, Any]]:
+    """Per model: budget, optimizer settings, stopping and what best-weights keeping means for
+    it; `train_rows` (the source's rows outside the held-out split) sizes epoch budgets."""
     cvae_keep = "model" if config.cvae_keep_best else "none"
+    stopping = dict(
+        plateau_patience=config.plateau_patience, plateau_tolerance=config.plateau_tolerance
+    )
     cvae = dict(
         batch_size=config.cvae_batch_size,
         lr=config.cvae_lr,
         weight_decay=0.0,
         keep_best=cvae_keep,
         precision=config.cvae_precision,
+        **(stopping if config.cvae_keep_best else {}),
     )
+
+    def budget(fixed_steps: int, batch_size: int) -> int:
+        if config.budget_epochs <= 0:
+            return fixed_steps
+        return max(1, math.ceil(config.budget_epochs * train_rows / batch_size))
+
     return {
-        "state_transition": dict(steps=config.state_transition_steps, **cvae),
+        "state_transition": dict(
+            steps=budget(config.state_transition_steps, config.cvae_batch_size), **cvae
+        ),
         "value": dict(
             steps=config.value_steps,
             batch_size=config.value_batch_size,
@@ -310,15 +387,20 @@ def fit_settings(config: GeneratorConfig) -> dict[str, dict[str, Any]]:
             keep_best="none",
             precision=config.value_precision,
         ),
-        "inverse_action": dict(steps=config.inverse_action_steps, **cvae),
-        "inverse_reward": dict(steps=config.inverse_reward_steps, **cvae),
+        "inverse_action": dict(
+            steps=budget(config.inverse_action_steps, config.cvae_batch_size), **cvae
+        ),
+        "inverse_reward": dict(
+            steps=budget(config.inverse_reward_steps, config.cvae_batch_size), **cvae
+        ),
         "dynamics": dict(
-            steps=config.dynamics_steps,
+            steps=budget(config.dynamics_steps, config.dynamics_batch_size),
             batch_size=config.dynamics_batch_size,
             lr=config.dynamics_lr,
             weight_decay=config.dynamics_weight_decay,
             keep_best="member",
             precision=config.dynamics_precision,
+            **stopping,
         ),
     }
 
@@ -428,7 +510,10 @@ def train_generators(
     set_data_scales(models, transitions, config)
     for model in models.values():
         model.to(device)
-    settings, losses = fit_settings(config), model_losses(models)
+    train_rows = len(transitions) - training.heldout_count(
+        len(transitions), config.heldout_fraction
+    )
+    settings, losses = fit_settings(config, train_rows), model_losses(models)
     report: dict[str, dict] = {}
     data: training.TensorData | None = None
     with progress_display(disable=not show_progress) as prog:
@@ -465,6 +550,9 @@ def train_generators(
                 write_json_atomic(record_path, record.to_dict())
                 (cache_dir / f"{name}.ckpt.pt").unlink(missing_ok=True)
                 report[name] = record.to_dict()
+    models["dynamics"].set_elites(
+        elite_members(report["dynamics"].get("member_best_heldout_losses"), config)
+    )
     for model in models.values():
         model.eval().requires_grad_(False)
     hashes = {name: file_sha256(cache_dir / f"{name}.pt") for name in MODEL_NAMES}
@@ -477,6 +565,21 @@ def train_generators(
         training_report=report,
         **models,
     )
+
+
+def elite_members(member_losses: list[float] | None, config: GeneratorConfig) -> list[int] | None:
+    """The `dynamics_elites` members of lowest held-out loss, in member order (None: all)."""
+    if not config.dynamics_elites or config.dynamics_elites >= config.dynamics_members:
+        return None
+    if member_losses is None or len(member_losses) != config.dynamics_members:
+        raise DataFormatError(
+            "dynamics.json",
+            "member_best_heldout_losses",
+            f"{config.dynamics_members} per-member held-out losses to choose elites from",
+            member_losses,
+        )
+    ranked = sorted(range(len(member_losses)), key=lambda m: (member_losses[m], m))
+    return sorted(ranked[: config.dynamics_elites])
 
 
 def _adopt_from_sibling(

@@ -41,6 +41,10 @@ class TrainingRecord:
     best_heldout_loss: float  # lowest seen at an evaluation (mean of per-member bests)
     final_heldout_loss: float  # after the last step, before best weights are restored
     cached: bool = False  # True when loaded from a finished weights file instead of trained
+    budget_steps: int = 0  # the step budget asked for (steps < budget_steps: stopped early)
+    stopped_on_plateau: bool = False  # the held-out loss stopped improving before the budget
+    # per ensemble member: lowest held-out loss seen (what elites are chosen by); None otherwise
+    member_best_heldout_losses: list[float] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -67,6 +71,11 @@ def load_tensors(path: Path, what: str) -> Any:
     return load_torch(path, f"{what}; delete it to retrain")
 
 
+def heldout_count(rows: int, heldout_fraction: float) -> int:
+    """Rows of a `rows`-row dataset put aside as held-out (at least one, never all)."""
+    return min(max(1, round(rows * heldout_fraction)), rows - 1)
+
+
 class TensorData:
     """Transition tensors preallocated on one device, split once into train and held-out rows."""
 
@@ -77,7 +86,7 @@ class TensorData:
         order = torch.randperm(
             n, generator=torch.Generator().manual_seed(derive_seed(seed, "split"))
         )
-        n_heldout = min(max(1, round(n * heldout_fraction)), n - 1)
+        n_heldout = heldout_count(n, heldout_fraction)
         self.heldout_rows = order[:n_heldout].to(device)
         self.train_rows = order[n_heldout:].to(device)
         self._heldout = {k: t[self.heldout_rows[:heldout_eval_rows]] for k, t in tensors.items()}
@@ -137,13 +146,22 @@ def fit(
     checkpoint_every: int,
     checkpoint_path: Path,
     keep_best: str,
+    plateau_patience: int = 0,
+    plateau_tolerance: float = 0.0,
     after_step: Callable[[int], None] | None = None,
     progress: Progress | None = None,
 ) -> TrainingRecord:
     """Train `model` for `steps` Adam steps on minibatches of `data`, resuming from
-    `checkpoint_path` when it exists; returns the record and leaves the kept weights loaded."""
+    `checkpoint_path` when it exists; returns the record and leaves the kept weights loaded.
+
+    With `plateau_patience` > 0 (and best weights kept), training stops once that many
+    held-out evaluations in a row failed to lower the best held-out loss (mean over members) by
+    more than `plateau_tolerance` of it.
+    """
     if keep_best not in KEEP_BEST_MODES:
         raise ValueError(f"keep_best '{keep_best}': expected one of {KEEP_BEST_MODES}")
+    if plateau_patience and keep_best == "none":
+        raise ValueError("plateau stopping needs kept best weights (keep_best 'model'/'member')")
     device = next(model.parameters()).device
     params = [p for p in model.parameters() if p.requires_grad]
     optimizer = torch.optim.Adam(params, lr=lr, weight_decay=weight_decay, fused=True)
@@ -165,11 +183,14 @@ def fit(
         step, seconds = int(state["step"]), float(state["seconds"])
         initial, last = state["initial_loss"], state["last_loss"]
         best = _BestWeights(keep_best, state["best_loss"], state["best_state"])
+        stale, plateau_best = int(state["stale_evals"]), float(state["plateau_best"])
     else:
         step, seconds = 0, 0.0
         initial = last = heldout_loss()
         kept = copy.deepcopy(model.state_dict()) if keep_best != "none" else None
         best = _BestWeights(keep_best, initial.clone(), kept)
+        # evaluations since the monitored best last improved by more than the tolerance
+        stale, plateau_best = 0, float(initial.mean())
 
     def save_checkpoint() -> None:
         save_torch_atomic(
@@ -184,6 +205,8 @@ def fit(
                 "last_loss": last,
                 "best_loss": best.loss,
                 "best_state": best.state,
+                "stale_evals": stale,
+                "plateau_best": plateau_best,
             },
         )
         checkpoint_written(name, step)
@@ -195,7 +218,8 @@ def fit(
         )
     started, start_step = time.perf_counter(), step
     refresh_every = max(1, min(50, eval_every))
-    while step < steps:
+    stopped = False
+    while step < steps and not stopped:
         batch = data.sample(batch_size, generator)
         with autocast(device, precision):
             loss, _ = loss_fn(batch, generator)
@@ -208,9 +232,15 @@ def fit(
         if step % eval_every == 0 or step == steps:
             last = heldout_loss()
             best.update(model, last)
-        if step % checkpoint_every == 0 and step < steps:
+            monitored = float(best.loss.mean())
+            if monitored < plateau_best - plateau_tolerance * abs(plateau_best):
+                stale, plateau_best = 0, monitored
+            else:
+                stale += 1
+            stopped = bool(plateau_patience) and stale >= plateau_patience and step < steps
+        if step % checkpoint_every == 0 and step < steps and not stopped:
             save_checkpoint()
-        if task is not None and (step % refresh_every == 0 or step == steps):
+        if task is not None and (step % refresh_every == 0 or step == steps or stopped):
             elapsed = time.perf_counter() - started
             progress.update(
                 task,
@@ -236,6 +266,9 @@ def fit(
         initial_heldout_loss=float(initial.mean()),
         best_heldout_loss=float(best.loss.mean()),
         final_heldout_loss=float(last.mean()),
+        budget_steps=steps,
+        stopped_on_plateau=stopped,
+        member_best_heldout_losses=[float(x) for x in best.loss] if keep_best == "member" else None,
     )
 
 
