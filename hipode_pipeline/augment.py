@@ -172,6 +172,7 @@ def run_augment(
     selection: str = "batch",
     candidates: str = "model",
     dynamics_mean: bool = False,
+    uncertainty_check: bool = False,
     profile: str = "full",
     seed: int = 0,
     out: Path | None = None,
@@ -206,6 +207,7 @@ def run_augment(
             selection=selection,
             candidates=candidates,
             dynamics_mean=dynamics_mean,
+            uncertainty_check=uncertainty_check,
         )
         overrides = {
             "alpha": params.alpha if alpha is None else alpha,
@@ -247,6 +249,7 @@ def run_augment(
             selection=generation.selection,
             candidates=generation.candidates,
             dynamics_mean=generation.dynamics_mean,
+            uncertainty_check=generation.uncertainty_check,
             profile=profile,
         )
         own_source = source is None or source in (task.name, task.local_dataset_id)

@@ -41,6 +41,7 @@ class ArtifactSettings:
     selection: str = "batch"  # top-lambda per batch | global
     candidates: str = "model"  # state-transition model | uniform (ablation)
     dynamics_mean: bool = False  # dynamics check against the ensemble mean
+    uncertainty_check: bool = False  # ranking in the ensemble's own predicted stds
     profile: str = "full"  # generator budgets
 
     def variant_tags(self) -> list[str]:
@@ -54,6 +55,8 @@ class ArtifactSettings:
             tags.append(self.candidates)
         if self.dynamics_mean:
             tags.append("dynmean")
+        if self.uncertainty_check:
+            tags.append("dynunc")
         if self.profile != "full":
             tags.append(self.profile)
         return tags
@@ -95,6 +98,7 @@ class ArtifactSettings:
                 selection=str(params.get("selection", "batch")),
                 candidates=str(params.get("candidates", "model")),
                 dynamics_mean=bool(params.get("dynamics_mean", False)),
+                uncertainty_check=bool(params.get("uncertainty_check", False)),
                 profile=str(params.get("profile", "full")),
             )
         except (KeyError, TypeError, ValueError):

@@ -24,7 +24,6 @@ from hipode_pipeline.seeding import derive_seed
 
 SELECTIONS = ("batch", "global")
 CANDIDATE_SOURCES = ("model", "uniform")
-PROFILES = ("full", "quick")
 # more synthetic rows than this many times the source, or candidates per state, is a typo
 MAX_ETA = 10.0
 MAX_CANDIDATES = 1000
@@ -46,6 +45,9 @@ class GenerationConfig:
     candidates: str = "model"
     # check against the ensemble mean instead of a random member's sample
     dynamics_mean: bool = False
+    # rank by the distance to the ensemble's mean prediction in its own predicted stds (the
+    # members' mean variance plus their disagreement), not in z-scored state units
+    uncertainty_check: bool = False
 
     def __post_init__(self) -> None:
         checks = {
@@ -133,10 +135,15 @@ def _evaluate_batch(
     cond = torch.cat([states_norm, next_norm], dim=1)
     actions = generators.inverse_action.sample(cond, 1, generator=sampling)[:, 0]
     rewards = generators.inverse_reward.sample(cond, 1, generator=sampling)[:, 0, 0]
-    dyna_next, dyna_rewards = generators.dynamics.sample(
-        states_norm, actions, generator=sampling, use_mean=config.dynamics_mean
-    )
-    errors = torch.linalg.vector_norm(dyna_next - next_norm, dim=1)
+    if config.uncertainty_check:
+        mean, variance = generators.dynamics.predictive(states_norm, actions)
+        dyna_next, dyna_rewards = states_norm + mean[:, :-1], mean[:, -1]
+        errors = ((dyna_next - next_norm).pow(2) / variance[:, :-1]).mean(1).sqrt()
+    else:
+        dyna_next, dyna_rewards = generators.dynamics.sample(
+            states_norm, actions, generator=sampling, use_mean=config.dynamics_mean
+        )
+        errors = torch.linalg.vector_norm(dyna_next - next_norm, dim=1)
     finite = (
         has_finite
         & torch.isfinite(actions).all(1)

@@ -103,6 +103,7 @@ NESTED_MANIFEST_KEYS = {
         "selection": "string",
         "candidates": "string",
         "dynamics_mean": "boolean",
+        "uncertainty_check": "boolean",
         "profile": "string",
         "generator_config": "object",
         "generator_config_hash": "string",

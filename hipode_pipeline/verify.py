@@ -868,17 +868,25 @@ def write_summary(reports: list[VerifyReport], out_dir: Path) -> tuple[Path, Pat
             },
         },
     )
+    plot_matched_novelty(
+        [(Path(r.artifact).name.split("-eta")[0], r.analysis) for r in reports], png_path
+    )
+    return json_path, png_path
+
+
+def plot_matched_novelty(series: list[tuple[str, dict[str, Any] | None]], path: Path) -> None:
+    """Per (label, analysis): HIPODE's and the baseline's median error in each shared novelty
+    bin, one colour per label, as PNG (atomically)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     figure, axes = plt.subplots(figsize=(7.2, 4.8), dpi=120)
-    for index, report in enumerate(reports):
-        bins = ((report.analysis or {}).get("matched_novelty_exact_rows") or {}).get("bins", [])
+    for index, (name, analysis) in enumerate(series):
+        bins = ((analysis or {}).get("matched_novelty_exact_rows") or {}).get("bins", [])
         centers = [b["novelty_from"] for b in bins]
         color = f"C{index % 10}"
-        name = Path(report.artifact).name.split("-eta")[0]
         for key, style, label in (
             ("hipode_median", "-", "HIPODE"),
             ("baseline_median", "--", "plain"),
@@ -890,8 +898,7 @@ def write_summary(reports: list[VerifyReport], out_dir: Path) -> tuple[Path, Pat
     axes.set_ylabel("median next-state error vs simulator (source stds)")
     axes.set_title("authenticity at matched novelty, exact rows")
     axes.legend(fontsize=7)
-    _save_figure(figure, png_path)
-    return json_path, png_path
+    _save_figure(figure, path)
 
 
 def _write_json_atomic(path: Path, data: dict[str, Any]) -> None:

@@ -226,3 +226,59 @@ def test_paper_profile_keeps_the_appendix_sizes_whatever_the_defaults():
     assert paper.penalty_scale == "raw"
     # overrides still win over the profile
     assert GeneratorConfig.profile("paper", cvae_hidden=64).cvae_hidden == 64
+
+
+def test_predictive_variance_is_the_members_variance_plus_their_disagreement():
+    model = ensemble_with_member_offsets([0.0, 1.0, 2.0, 3.0])
+    model.set_reward_scale(10.0, 2.0)
+    mean, variance = model.predictive(torch.zeros(3, 2), torch.zeros(3, 1))
+    assert torch.allclose(mean[:, :2], torch.full((3, 2), 1.5))
+    assert torch.allclose(mean[:, 2], torch.full((3,), 10.0 + 2.0 * 1.5))  # raw reward
+    assert torch.allclose(variance, torch.full((3, 3), 1.25), atol=1e-6)
+    model.set_elites([0, 1])
+    _, variance = model.predictive(torch.zeros(3, 2), torch.zeros(3, 1))
+    assert torch.allclose(variance, torch.full((3, 3), 0.25), atol=1e-6)
+
+
+def test_uncertainty_check_ranks_in_the_ensembles_own_stds():
+    from test_generation import DYNAMICS_W, StandIn, _source
+
+    from hipode_pipeline.data.normalizer import StateNormalizer
+    from hipode_pipeline.generate import GenerationConfig, generate
+
+    # the ensemble is unsure about dimension 0 only: errors there count a tenth as much
+    scale = torch.ones(11)
+    scale[0] = 100.0
+
+    class Uncertain(StandIn):
+        def __init__(self, normalizer):
+            super().__init__(normalizer)
+            self.dynamics.predictive = self._predictive
+
+        def _predictive(self, states, actions):
+            delta = torch.tanh(actions @ DYNAMICS_W) + 0.1 * torch.cos(3 * states)
+            mean = torch.cat([delta, torch.zeros(len(states), 1)], dim=1)
+            return mean, torch.cat([scale, torch.ones(1)]).expand(len(states), -1)
+
+    source = _source()
+    normalizer = StateNormalizer.fit(source.observations)
+    config = GenerationConfig(eta=0.3, lam=0.2, n=4, batch_size=64, uncertainty_check=True)
+    result = generate(
+        Uncertain(normalizer), source, config, env_id="Hopper-v5", seed=3, show_progress=False
+    )
+    rows = result.diagnostics["source_index"]
+    states = torch.as_tensor(normalizer.normalize(source.observations[rows]))
+    candidates = torch.as_tensor(result.next_states_normalized)
+    actions = torch.as_tensor(result.transitions.actions)
+    predicted = states + torch.tanh(actions @ DYNAMICS_W) + 0.1 * torch.cos(3 * states)
+    by_hand = ((predicted - candidates).pow(2) / scale).mean(1).sqrt()
+    np.testing.assert_allclose(result.diagnostics["dynamics_error"], by_hand, rtol=1e-4)
+    plain = generate(
+        Uncertain(normalizer),
+        source,
+        GenerationConfig(eta=0.3, lam=0.2, n=4, batch_size=64),
+        env_id="Hopper-v5",
+        seed=3,
+        show_progress=False,
+    )
+    assert set(plain.diagnostics["source_index"]) != set(rows)

@@ -32,6 +32,7 @@ class Learner(StrEnum):
 
 class Profile(StrEnum):
     full = "full"
+    paper = "paper"
     quick = "quick"
 
 
@@ -107,8 +108,20 @@ def augment_command(
             "--dynamics-mean", help="Check against the ensemble mean, not a member's sample."
         ),
     ] = False,
+    uncertainty_check: Annotated[
+        bool,
+        typer.Option(
+            "--uncertainty-check",
+            help="Rank candidates by their distance to the ensemble's mean prediction in its own "
+            "predicted stds (members' variance plus disagreement).",
+        ),
+    ] = False,
     profile: Annotated[
-        Profile, typer.Option(help="Generator budgets: full (the real run) or quick.")
+        Profile,
+        typer.Option(
+            help="Generator settings: full (the defaults), paper (the appendix's sizes and the "
+            "first fixed budgets, whatever the defaults become) or quick (seconds, for tests)."
+        ),
     ] = Profile.full,
     seed: SeedOption = 0,
     out: Annotated[
@@ -140,6 +153,7 @@ def augment_command(
         selection=selection.value,
         candidates=candidates.value,
         dynamics_mean=dynamics_mean,
+        uncertainty_check=uncertainty_check,
         profile=profile.value,
         seed=seed,
         out=out,

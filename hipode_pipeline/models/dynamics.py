@@ -182,6 +182,21 @@ class DynamicsEnsemble(nn.Module):
         return self.member_losses(states, actions, rewards, next_states).mean(-1)
 
     @torch.no_grad()
+    def predictive(self, states_norm: Tensor, actions: Tensor) -> tuple[Tensor, Tensor]:
+        """The ensemble's (elites') predictive mean and variance of (delta s_norm, reward in
+        model units, i.e. z-scored), (B, ds + 1) each: the members' mean variance plus the
+        variance of their means (total variance)."""
+        mean, log_std = self.stats(states_norm, actions)
+        if self.elites is not None:
+            elites = torch.as_tensor(self.elites, device=mean.device)
+            mean, log_std = mean[elites], log_std[elites]
+        mean, log_std = mean.float(), log_std.float()
+        variance = (2 * log_std).exp().mean(0) + mean.var(0, unbiased=False)
+        center = mean.mean(0)
+        raw_reward = center[:, -1] * self.reward_std + self.reward_mean
+        return torch.cat([center[:, :-1], raw_reward[:, None]], dim=1), variance
+
+    @torch.no_grad()
     def sample(
         self,
         states_norm: Tensor,
