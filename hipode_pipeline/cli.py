@@ -10,6 +10,7 @@ from hipode_pipeline.commands import (
     collect,
     datasets,
     merge,
+    report,
     sweep,
     tasks,
     train,
@@ -23,7 +24,7 @@ app = typer.Typer(
     add_completion=False,
 )
 
-for group in (tasks, collect, datasets, augment, merge, train, verify, artifacts, sweep):
+for group in (tasks, collect, datasets, augment, merge, train, verify, artifacts, sweep, report):
     group.register(app)
 
 

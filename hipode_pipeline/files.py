@@ -288,6 +288,18 @@ def save_npz_atomic(path: str | Path, arrays: dict[str, np.ndarray]) -> None:
     write_bytes_atomic(path, buffer.getbuffer())
 
 
+def save_figure_atomic(figure: Any, path: str | Path) -> None:
+    """Write a matplotlib figure as PNG atomically, and free it."""
+    import matplotlib.pyplot as plt
+
+    figure.tight_layout()
+    try:
+        with atomic_path(path) as temp:
+            figure.savefig(temp, format="png")
+    finally:
+        plt.close(figure)
+
+
 def file_sha256(path: str | Path) -> str:
     """sha256 of a file's bytes, read in blocks."""
     digest = hashlib.sha256()

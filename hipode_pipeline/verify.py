@@ -43,8 +43,8 @@ from hipode_pipeline.diagnose import matched_novelty, stage_diagnosis, state_err
 from hipode_pipeline.envs import termination_rule
 from hipode_pipeline.errors import DataFormatError, OverwriteError, SettingError
 from hipode_pipeline.files import (
-    atomic_path,
     file_sha256,
+    save_figure_atomic,
     save_torch_atomic,
     write_json_atomic,
     write_text_atomic,
@@ -746,19 +746,7 @@ def plot_novelty_vs_error(report: VerifyReport, path: Path) -> None:
     axes.set_ylabel("next-state error vs simulator (source stds, mean over dims)")
     axes.set_title(f"{Path(report.artifact).name} ({report.env_id}): authenticity vs novelty")
     axes.legend(loc="best", fontsize=8)
-    _save_figure(figure, path)
-
-
-def _save_figure(figure, path: Path) -> None:
-    """Write a matplotlib figure as PNG atomically, and free it."""
-    import matplotlib.pyplot as plt
-
-    figure.tight_layout()
-    try:
-        with atomic_path(path) as temp:
-            figure.savefig(temp, format="png")
-    finally:
-        plt.close(figure)
+    save_figure_atomic(figure, path)
 
 
 STAGE_COLUMNS = ["stage", "rows", "median", "mean", "p90"]
@@ -898,7 +886,7 @@ def plot_matched_novelty(series: list[tuple[str, dict[str, Any] | None]], path: 
     axes.set_ylabel("median next-state error vs simulator (source stds)")
     axes.set_title("authenticity at matched novelty, exact rows")
     axes.legend(fontsize=7)
-    _save_figure(figure, path)
+    save_figure_atomic(figure, path)
 
 
 def _write_json_atomic(path: Path, data: dict[str, Any]) -> None:

@@ -1,0 +1,83 @@
+"""`hipode report`: finished runs aggregated across seeds (IQM, means, bootstrap CIs, curves)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from hipode_pipeline import console
+from hipode_pipeline.commands.common import ForceFlag, JsonFlag, output_folder, user_errors
+from hipode_pipeline.errors import OverwriteError
+from hipode_pipeline.report import (
+    OUTPUTS,
+    build_report,
+    comparison_rows,
+    find_runs,
+    parse_by,
+    parse_compare,
+    table_rows,
+    write_report,
+)
+
+
+@user_errors
+def report_command(
+    run_dirs: Annotated[
+        list[Path],
+        typer.Argument(help="Run folders, or folders holding them (searched for scores.json)."),
+    ],
+    by: Annotated[
+        str, typer.Option("--by", help="Run keys that make a group (comma-separated).")
+    ] = "task,learner,data",
+    compare: Annotated[
+        str | None,
+        typer.Option(
+            "--compare",
+            help="KEY=VALUE of the baseline arm; every other group that agrees on the other "
+            "--by keys is compared with it (e.g. data=source).",
+        ),
+    ] = None,
+    last_k: Annotated[int, typer.Option("--last-k", help="Evaluations in the last-k mean.")] = 3,
+    reps: Annotated[int, typer.Option("--reps", help="Bootstrap resamples.")] = 5000,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the bootstrap.")] = 0,
+    out: Annotated[
+        Path,
+        typer.Option(
+            "--out",
+            help="Folder for report.json/.md/.csv/.tex and curves.png.",
+            callback=output_folder,
+        ),
+    ] = Path("report"),
+    force: ForceFlag = False,
+    json_output: JsonFlag = False,
+) -> None:
+    """Aggregate finished runs across seeds: IQM and mean with stratified bootstrap 95 % CIs
+    (rliable), probability of improvement and paired differences against a baseline arm, and
+    learning curves."""
+    keys, baseline = parse_by(by), parse_compare(compare)
+    existing = [str(out / name) for name in OUTPUTS if (out / name).exists()]
+    if existing and not force:
+        raise OverwriteError(f"{', '.join(existing)} already exist(s); pass --force to replace")
+    runs = find_runs(run_dirs)
+    report = build_report(runs, by=keys, compare=baseline, k=last_k, reps=reps, seed=seed)
+    paths = write_report(report, out)
+    if json_output:
+        console.print_json(report)
+        return
+    columns, rows = table_rows(report)
+    console.out.print(console.table(f"{len(runs)} runs across seeds", columns, rows))
+    if report["comparisons"]:
+        columns, rows = comparison_rows(report)
+        console.out.print(console.table(f"against {report['compare']}", columns, rows))
+    console.err.print(
+        console.plain(
+            "intervals are over seeds (bootstrap 95 % CI); wrote "
+            + ", ".join(str(p) for p in paths.values())
+        )
+    )
+
+
+def register(app: typer.Typer) -> None:
+    app.command("report")(report_command)

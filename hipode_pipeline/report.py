@@ -1,0 +1,467 @@
+"""`hipode report`: runs aggregated across seeds, the way the field reports them.
+
+Per group of runs (default: same task, learner and data), three per-run measures: the last
+evaluation's score, the mean of the last k evaluations, and the curve mean (over all
+evaluations, a learning-speed measure). Across the group's seeds: the interquartile mean (IQM)
+and the mean, each with a stratified bootstrap 95 % confidence interval (rliable; with one task
+per group the bootstrap resamples seeds). Against a baseline arm (`--compare data=source`): the
+probability of improvement P(X > Y) with its bootstrap CI (rliable) and the paired difference of
+the per-seed measure, over the seeds both arms ran, with a percentile bootstrap CI. Learning
+curves: the mean score over seeds per evaluation step, with a bootstrap 95 % CI of that mean.
+
+Run folders are read only (`scores.json`, a finished run's record); scores are D4RL-normalized
+on whatever data the runs used (here: Gymnasium v5 datasets built locally, scored with D4RL's
+reference returns).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hipode_pipeline.errors import DataFormatError, MissingExtraError, SettingError
+from hipode_pipeline.files import save_figure_atomic, write_text_atomic
+
+MEASURES = ("last", "last_k_mean", "curve_mean")
+MEASURE_TEXT = {
+    "last": "last evaluation",
+    "last_k_mean": "mean of the last {k} evaluations",
+    "curve_mean": "mean over all evaluations",
+}
+DEFAULT_BY = ("task", "learner", "data")
+OUTPUTS = ("report.json", "report.md", "report.csv", "report.tex", "curves.png")
+
+
+@dataclass(frozen=True)
+class Run:
+    """One finished run as its scores.json tells it."""
+
+    path: Path
+    keys: dict[str, Any]  # task, learner, data, eta, mixing, seed, artifact_seed, ...
+    steps: list[int]  # evaluation steps
+    scores: list[float]  # D4RL-normalized score mean at each evaluation
+
+    @property
+    def seed(self) -> int:
+        return int(self.keys["seed"])
+
+    def measure(self, name: str, k: int) -> float:
+        values = np.asarray(self.scores, dtype=np.float64)
+        if name == "last":
+            return float(values[-1])
+        if name == "last_k_mean":
+            return float(values[-k:].mean())
+        return float(values.mean())
+
+
+@dataclass
+class Group:
+    key: dict[str, Any]
+    runs: list[Run] = field(default_factory=list)
+
+    @property
+    def label(self) -> str:
+        return " ".join(f"{k}={v}" for k, v in self.key.items())
+
+
+def find_runs(paths: Sequence[Path]) -> list[Run]:
+    """Every run folder (a folder with scores.json) at or below `paths`, in path order."""
+    folders: list[Path] = []
+    for path in paths:
+        path = Path(path)
+        if not path.exists():
+            raise DataFormatError(path, "(path)", "a run folder or a folder holding run folders")
+        if (path / "scores.json").is_file():
+            folders.append(path)
+        else:
+            folders += sorted(p.parent for p in path.rglob("scores.json"))
+    if not folders:
+        raise DataFormatError(
+            paths[0], "scores.json", "at least one finished run (a folder with scores.json)"
+        )
+    return [read_run(folder) for folder in dict.fromkeys(folders)]
+
+
+def read_run(folder: Path) -> Run:
+    path = folder / "scores.json"
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as error:
+        raise DataFormatError(
+            path, "(file)", "a JSON object (a finished run's scores)", error
+        ) from None
+    if not isinstance(data, dict):
+        raise DataFormatError(path, "(file)", "a JSON object", type(data).__name__)
+    evaluations = data.get("evaluations")
+    if not isinstance(evaluations, list) or not evaluations:
+        raise DataFormatError(path, "evaluations", "a non-empty list of evaluations")
+    steps, scores = [], []
+    for index, evaluation in enumerate(evaluations):
+        score = evaluation.get("score_mean") if isinstance(evaluation, dict) else None
+        step = evaluation.get("step") if isinstance(evaluation, dict) else None
+        if not isinstance(score, int | float) or isinstance(score, bool) or not np.isfinite(score):
+            raise DataFormatError(
+                path, f"evaluations[{index}].score_mean", "a finite normalized score", score
+            )
+        if not isinstance(step, int) or isinstance(step, bool):
+            raise DataFormatError(path, f"evaluations[{index}].step", "an integer", step)
+        steps.append(step)
+        scores.append(float(score))
+    if not isinstance(data.get("seed"), int):
+        raise DataFormatError(
+            path, "seed", "an integer (the run's training seed)", data.get("seed")
+        )
+    identity = data.get("data_identity") if isinstance(data.get("data_identity"), dict) else {}
+    keys = {
+        **{k: v for k, v in identity.items() if isinstance(v, str | int | float | bool)},
+        **{k: v for k, v in data.items() if isinstance(v, str | int | float | bool)},
+    }
+    return Run(folder, keys, steps, scores)
+
+
+def parse_by(text: str) -> tuple[str, ...]:
+    keys = tuple(k.strip() for k in text.split(",") if k.strip())
+    if not keys or "seed" in keys:
+        raise SettingError(
+            f"--by {text!r}: expected run keys to group by (not seed), e.g. task,data"
+        )
+    return keys
+
+
+def parse_compare(text: str | None) -> tuple[str, Any] | None:
+    """'data=source' -> ('data', 'source'): the baseline arm each other arm is compared with."""
+    if text is None:
+        return None
+    key, sep, value = text.partition("=")
+    if not sep or not key.strip() or not value.strip():
+        raise SettingError(f"--compare {text!r}: expected KEY=VALUE, e.g. data=source")
+    return key.strip(), value.strip()
+
+
+def group_runs(runs: list[Run], by: tuple[str, ...]) -> list[Group]:
+    groups: dict[tuple, Group] = {}
+    for run in runs:
+        missing = [k for k in by if k not in run.keys]
+        if missing:
+            raise DataFormatError(
+                run.path / "scores.json", missing[0], f"a value for --by key '{missing[0]}'"
+            )
+        key = {k: run.keys[k] for k in by}
+        group = groups.setdefault(tuple(key.values()), Group(key))
+        if run.seed in {r.seed for r in group.runs}:
+            raise DataFormatError(
+                run.path,
+                "seed",
+                f"one run per seed in group {group.label} (another folder has seed {run.seed}); "
+                "group by more keys (--by) or pass fewer folders",
+            )
+        group.runs.append(run)
+    for group in groups.values():
+        group.runs.sort(key=lambda r: r.seed)
+    return list(groups.values())
+
+
+def _rliable():
+    try:
+        from rliable import library, metrics
+    except ImportError:
+        raise MissingExtraError(
+            "hipode report needs rliable: install the optional extra: pip install -e '.[report]'"
+        ) from None
+    return library, metrics
+
+
+def interval_estimates(values: np.ndarray, reps: int, seed: int) -> dict[str, Any]:
+    """IQM and mean of per-seed `values` with stratified bootstrap 95 % CIs (rliable)."""
+    library, metrics = _rliable()
+    scores = np.asarray(values, dtype=np.float64).reshape(-1, 1)
+
+    def aggregates(x: np.ndarray) -> np.ndarray:
+        return np.array([metrics.aggregate_iqm(x), metrics.aggregate_mean(x)])
+
+    with warnings.catch_warnings():
+        # arch, under rliable, warns that RandomState is deprecated; the seed is still honoured
+        warnings.simplefilter("ignore", FutureWarning)
+        point, interval = library.get_interval_estimates(
+            {"x": scores}, aggregates, reps=reps, random_state=np.random.RandomState(seed)
+        )
+    return {
+        "iqm": float(point["x"][0]),
+        "iqm_ci": [float(interval["x"][0, 0]), float(interval["x"][1, 0])],
+        "mean": float(point["x"][1]),
+        "mean_ci": [float(interval["x"][0, 1]), float(interval["x"][1, 1])],
+        "std": float(scores.std(ddof=1)) if len(scores) > 1 else 0.0,
+        "n": int(len(scores)),
+    }
+
+
+def improvement(x: np.ndarray, y: np.ndarray, reps: int, seed: int) -> dict[str, Any]:
+    """P(X > Y) over the two arms' seeds with its bootstrap CI (rliable)."""
+    library, metrics = _rliable()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FutureWarning)
+        point, interval = library.get_interval_estimates(
+            {"p": (np.reshape(x, (-1, 1)), np.reshape(y, (-1, 1)))},
+            metrics.probability_of_improvement,
+            reps=reps,
+            random_state=np.random.RandomState(seed),
+        )
+    return {
+        "probability": float(point["p"]),
+        "ci": [float(interval["p"][0, 0]), float(interval["p"][1, 0])],
+    }
+
+
+def paired_difference(x: dict[int, float], y: dict[int, float], reps: int, seed: int):
+    """Mean of x[s] - y[s] over the seeds both have, with a percentile bootstrap 95 % CI."""
+    shared = sorted(set(x) & set(y))
+    if not shared:
+        return None
+    diffs = np.array([x[s] - y[s] for s in shared])
+    rng = np.random.default_rng(seed)
+    means = diffs[rng.integers(len(diffs), size=(reps, len(diffs)))].mean(axis=1)
+    return {
+        "mean": float(diffs.mean()),
+        "ci": [float(np.quantile(means, 0.025)), float(np.quantile(means, 0.975))],
+        "seeds": shared,
+        "sem": float(diffs.std(ddof=1) / np.sqrt(len(diffs))) if len(diffs) > 1 else None,
+    }
+
+
+def build_report(
+    runs: list[Run],
+    *,
+    by: tuple[str, ...] = DEFAULT_BY,
+    compare: tuple[str, Any] | None = None,
+    k: int = 3,
+    reps: int = 5000,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """Everything the report files hold, as one JSON-ready dict."""
+    if k < 1 or reps < 100:
+        raise SettingError(f"expected --last-k >= 1 and --reps >= 100, found {k} and {reps}")
+    groups = group_runs(runs, by)
+    if compare is not None and compare[0] not in by:
+        raise SettingError(f"--compare {compare[0]}=…: expected one of the --by keys {list(by)}")
+    rows = []
+    for group in groups:
+        row: dict[str, Any] = {**group.key, "seeds": [r.seed for r in group.runs], "measures": {}}
+        for name in MEASURES:
+            values = np.array([r.measure(name, k) for r in group.runs])
+            row["measures"][name] = interval_estimates(values, reps, seed)
+        row["curve"] = mean_curve(group.runs, reps, seed)
+        row["runs"] = [str(r.path) for r in group.runs]
+        rows.append(row)
+    comparisons = []
+    if compare is not None:
+        key, value = compare
+        baselines = {
+            tuple((k2, g.key[k2]) for k2 in by if k2 != key): g
+            for g in groups
+            if str(g.key[key]) == value
+        }
+        if not baselines:
+            raise SettingError(f"--compare {key}={value}: no group has {key} = {value!r}")
+        for group in groups:
+            if str(group.key[key]) == value:
+                continue
+            base = baselines.get(tuple((k2, group.key[k2]) for k2 in by if k2 != key))
+            if base is None:
+                continue
+            entry: dict[str, Any] = {"arm": group.label, "baseline": base.label, "measures": {}}
+            for name in MEASURES:
+                mine = {r.seed: r.measure(name, k) for r in group.runs}
+                theirs = {r.seed: r.measure(name, k) for r in base.runs}
+                entry["measures"][name] = {
+                    "probability_of_improvement": improvement(
+                        np.array(list(mine.values())), np.array(list(theirs.values())), reps, seed
+                    ),
+                    "paired_difference": paired_difference(mine, theirs, reps, seed),
+                }
+            comparisons.append(entry)
+    return {
+        "by": list(by),
+        "compare": None if compare is None else f"{compare[0]}={compare[1]}",
+        "last_k": k,
+        "bootstrap": {"reps": reps, "seed": seed, "confidence": 0.95},
+        "definitions": {
+            **{name: text.format(k=k) for name, text in MEASURE_TEXT.items()},
+            "iqm": "interquartile mean over seeds (rliable aggregate_iqm)",
+            "ci": "stratified bootstrap 95 % CI over seeds (rliable get_interval_estimates)",
+            "probability_of_improvement": "P(a seed of the arm scores above a seed of the "
+            "baseline), rliable, with its bootstrap CI",
+            "paired_difference": "mean over shared seeds of arm - baseline, percentile "
+            "bootstrap 95 % CI",
+            "scores": "D4RL-normalized returns on the runs' data (locally built Gymnasium v5 "
+            "datasets scored with D4RL's reference returns, unless the runs say otherwise)",
+        },
+        "groups": rows,
+        "comparisons": comparisons,
+    }
+
+
+def mean_curve(runs: list[Run], reps: int, seed: int) -> dict[str, list]:
+    """Mean score over seeds at each step every run evaluated, with a bootstrap 95 % CI."""
+    steps = sorted(set.intersection(*(set(r.steps) for r in runs)))
+    matrix = np.array([[dict(zip(r.steps, r.scores, strict=True))[s] for s in steps] for r in runs])
+    rng = np.random.default_rng(seed)
+    picks = rng.integers(len(runs), size=(reps, len(runs)))
+    means = matrix[picks].mean(axis=1)
+    return {
+        "steps": steps,
+        "mean": matrix.mean(axis=0).round(4).tolist(),
+        "ci_low": np.quantile(means, 0.025, axis=0).round(4).tolist(),
+        "ci_high": np.quantile(means, 0.975, axis=0).round(4).tolist(),
+    }
+
+
+def _interval(m: dict[str, Any], name: str) -> str:
+    low, high = m[f"{name}_ci"]
+    return f"{m[name]:.1f} [{low:.1f}, {high:.1f}]"
+
+
+def table_rows(report: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
+    """The human table: per group, IQM and mean [95 % CI] of each measure, over n seeds."""
+    by = report["by"]
+    columns = [*by, "seeds"]
+    for name in MEASURES:
+        text = report["definitions"][name]
+        columns += [f"{text}: IQM [95% CI]", f"{text}: mean [95% CI]"]
+    rows = []
+    for group in report["groups"]:
+        row = [str(group[k]) for k in by] + [str(len(group["seeds"]))]
+        for name in MEASURES:
+            m = group["measures"][name]
+            row += [_interval(m, "iqm"), _interval(m, "mean")]
+        rows.append(row)
+    return columns, rows
+
+
+def comparison_rows(report: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
+    columns = ["arm", "baseline"]
+    for name in MEASURES:
+        text = report["definitions"][name]
+        columns += [f"{text}: P(improvement) [95% CI]", f"{text}: paired diff [95% CI]"]
+    rows = []
+    for entry in report["comparisons"]:
+        row = [entry["arm"], entry["baseline"]]
+        for name in MEASURES:
+            m = entry["measures"][name]
+            p = m["probability_of_improvement"]
+            row.append(f"{p['probability']:.2f} [{p['ci'][0]:.2f}, {p['ci'][1]:.2f}]")
+            d = m["paired_difference"]
+            row.append(
+                "-"
+                if d is None
+                else f"{d['mean']:+.1f} [{d['ci'][0]:+.1f}, {d['ci'][1]:+.1f}] "
+                f"({len(d['seeds'])} seeds)"
+            )
+        rows.append(row)
+    return columns, rows
+
+
+def markdown(report: dict[str, Any]) -> str:
+    columns, rows = table_rows(report)
+    lines = [
+        "# Scores across seeds",
+        "",
+        f"Grouped by {', '.join(report['by'])}. Scores: {report['definitions']['scores']}. "
+        f"Intervals: {report['definitions']['ci']} ({report['bootstrap']['reps']} resamples, "
+        f"seed {report['bootstrap']['seed']}); they are over seeds, not evaluation episodes.",
+        "",
+        _md_table(columns, rows),
+    ]
+    if report["comparisons"]:
+        columns, rows = comparison_rows(report)
+        lines += ["", f"Against {report['compare']}:", "", _md_table(columns, rows)]
+    return "\n".join(lines) + "\n"
+
+
+def _md_table(columns: list[str], rows: list[list[str]]) -> str:
+    return "\n".join(
+        ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+        + ["| " + " | ".join(row) + " |" for row in rows]
+    )
+
+
+def csv_text(report: dict[str, Any]) -> str:
+    out = io.StringIO()
+    writer = csv.writer(out)
+    by = report["by"]
+    writer.writerow(
+        [*by, "measure", "n", "iqm", "iqm_low", "iqm_high", "mean", "mean_low", "mean_high"]
+    )
+    for group in report["groups"]:
+        for name in MEASURES:
+            m = group["measures"][name]
+            writer.writerow(
+                [group[k] for k in by]
+                + [name, m["n"], m["iqm"], *m["iqm_ci"], m["mean"], *m["mean_ci"]]
+            )
+    return out.getvalue()
+
+
+def latex(report: dict[str, Any]) -> str:
+    """A booktabs table of the IQM [95 % CI] of each measure per group."""
+    by = report["by"]
+    header = [*by, *(report["definitions"][m] for m in MEASURES)]
+    lines = [
+        "\\begin{tabular}{" + "l" * len(by) + "r" * len(MEASURES) + "}",
+        "\\toprule",
+        " & ".join(_tex(h) for h in header) + " \\\\",
+        "\\midrule",
+    ]
+    for group in report["groups"]:
+        cells = [_tex(str(group[k])) for k in by]
+        for name in MEASURES:
+            m = group["measures"][name]
+            cells.append(f"{m['iqm']:.1f} [{m['iqm_ci'][0]:.1f}, {m['iqm_ci'][1]:.1f}]")
+        lines.append(" & ".join(cells) + " \\\\")
+    lines += ["\\bottomrule", "\\end{tabular}"]
+    return "\n".join(lines) + "\n"
+
+
+def _tex(text: str) -> str:
+    for char in "\\&%$#_{}":
+        text = text.replace(char, "\\" + char if char != "\\" else "\\textbackslash{}")
+    return text
+
+
+def plot_curves(report: dict[str, Any], path: Path) -> None:
+    """Mean learning curve per group with its bootstrap 95 % CI band, as PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(figsize=(7.2, 4.8), dpi=120)
+    for index, group in enumerate(report["groups"]):
+        curve, color = group["curve"], f"C{index % 10}"
+        label = " ".join(str(group[k]) for k in report["by"]) + f" ({len(group['seeds'])} seeds)"
+        axes.plot(curve["steps"], curve["mean"], color=color, label=label)
+        axes.fill_between(curve["steps"], curve["ci_low"], curve["ci_high"], color=color, alpha=0.2)
+    axes.set_xlabel("updates")
+    axes.set_ylabel("D4RL-normalized score")
+    axes.set_title("mean over seeds; band: bootstrap 95% CI of the mean over seeds")
+    axes.legend(fontsize=7)
+    save_figure_atomic(figure, path)
+
+
+def write_report(report: dict[str, Any], out: Path) -> dict[str, Path]:
+    """report.json/.md/.csv/.tex and curves.png under `out`, each written atomically."""
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {name: out / name for name in OUTPUTS}
+    write_text_atomic(paths["report.json"], json.dumps(report, indent=2) + "\n")
+    write_text_atomic(paths["report.md"], markdown(report))
+    write_text_atomic(paths["report.csv"], csv_text(report))
+    write_text_atomic(paths["report.tex"], latex(report))
+    plot_curves(report, paths["curves.png"])
+    return paths

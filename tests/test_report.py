@@ -1,0 +1,162 @@
+"""`hipode report`: seeds aggregated with rliable (IQM, means, bootstrap CIs), comparisons
+against a baseline arm, curves, the output files and clear errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from hipode_pipeline.cli import app
+from hipode_pipeline.errors import DataFormatError, SettingError
+from hipode_pipeline.report import build_report, find_runs
+
+pytest.importorskip("rliable", reason="the report extra (rliable) is not installed")
+
+
+def write_run(folder: Path, *, data: str, seed: int, scores: list[float], task="hopper-m-r"):
+    folder.mkdir(parents=True)
+    evaluations = [{"step": 100 * (i + 1), "score_mean": s} for i, s in enumerate(scores)]
+    (folder / "scores.json").write_text(
+        json.dumps(
+            {
+                "task": task,
+                "learner": "td3bc",
+                "data": data,
+                "seed": seed,
+                "eta": 0.5,
+                "evaluations": evaluations,
+                "data_identity": {"mixing": "mixed", "artifact_seed": 0},
+            }
+        )
+    )
+
+
+@pytest.fixture
+def two_arms(tmp_path):
+    """Four seeds of a baseline and of an arm scoring exactly 5 more on every seed."""
+    finals = [10.0, 20.0, 30.0, 40.0]
+    for seed, final in enumerate(finals):
+        curve = [final / 4, final / 2, final]
+        write_run(tmp_path / "runs" / f"source-{seed}", data="source", seed=seed, scores=curve)
+        write_run(
+            tmp_path / "runs" / f"merged-{seed}",
+            data="merged",
+            seed=seed,
+            scores=[s + 5 for s in curve],
+        )
+    return tmp_path / "runs"
+
+
+def test_iqm_mean_and_intervals_over_seeds(two_arms):
+    report = build_report(find_runs([two_arms]), k=2, reps=2000)
+    groups = {g["data"]: g for g in report["groups"]}
+    last = groups["source"]["measures"]["last"]
+    # IQM of 10, 20, 30, 40: the mean of the middle half (25); the mean is 25 too
+    assert last["iqm"] == pytest.approx(25.0) and last["mean"] == pytest.approx(25.0)
+    assert 10 <= last["mean_ci"][0] < 25 < last["mean_ci"][1] <= 40
+    assert groups["source"]["seeds"] == [0, 1, 2, 3] and last["n"] == 4
+    # mean of the last 2 evaluations, and the curve mean
+    assert groups["source"]["measures"]["last_k_mean"]["mean"] == pytest.approx(
+        np.mean([(f / 2 + f) / 2 for f in (10, 20, 30, 40)])
+    )
+    assert groups["merged"]["measures"]["curve_mean"]["mean"] == pytest.approx(
+        np.mean([np.mean([f / 4, f / 2, f]) + 5 for f in (10, 20, 30, 40)])
+    )
+    curve = groups["source"]["curve"]
+    assert curve["steps"] == [100, 200, 300]
+    assert curve["mean"] == pytest.approx([25 / 4, 25 / 2, 25])
+    assert all(lo <= m <= hi for lo, m, hi in zip(curve["ci_low"], curve["mean"], curve["ci_high"]))
+
+
+def test_comparison_pairs_seeds(two_arms):
+    report = build_report(find_runs([two_arms]), compare=("data", "source"), reps=2000)
+    (entry,) = report["comparisons"]
+    assert entry["arm"] == "task=hopper-m-r learner=td3bc data=merged"
+    last = entry["measures"]["last"]
+    paired = last["paired_difference"]
+    assert paired["mean"] == pytest.approx(5.0) and paired["ci"] == pytest.approx([5.0, 5.0])
+    assert paired["seeds"] == [0, 1, 2, 3]
+    # unpaired, 5 more is not always better (seed 0 at 15 loses to seed 1 at 20): 10 of 16 pairs
+    probability = last["probability_of_improvement"]["probability"]
+    assert probability == pytest.approx(10 / 16)
+
+
+def test_same_seed_twice_in_a_group_is_refused(tmp_path, two_arms):
+    write_run(two_arms / "again", data="source", seed=1, scores=[1.0])
+    with pytest.raises(DataFormatError, match="one run per seed"):
+        build_report(find_runs([two_arms]))
+
+
+def test_bad_inputs_are_named(tmp_path, two_arms):
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DataFormatError, match="scores.json"):
+        find_runs([tmp_path / "empty"])
+    bad = two_arms / "bad"
+    bad.mkdir()
+    (bad / "scores.json").write_text('{"seed": 0, "evaluations": [{"step": 1, "score_mean": "x"}]}')
+    with pytest.raises(DataFormatError, match=r"evaluations\[0\]\.score_mean"):
+        find_runs([bad])
+    with pytest.raises(SettingError, match="--compare"):
+        build_report(find_runs([two_arms / "source-0"]), compare=("eta", "0.5"))
+
+
+def test_cli_writes_every_format_and_refuses_to_overwrite(tmp_path, two_arms):
+    out = tmp_path / "report"
+    args = ["report", str(two_arms), "--compare", "data=source", "--out", str(out), "--reps", "500"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    for name in ("report.json", "report.md", "report.csv", "report.tex"):
+        assert (out / name).stat().st_size > 0
+    assert (out / "curves.png").read_bytes()[:4] == b"\x89PNG"
+    markdown = (out / "report.md").read_text()
+    assert "IQM [95% CI]" in markdown and "over seeds, not evaluation episodes" in markdown
+    assert "\\begin{tabular}" in (out / "report.tex").read_text()
+    again = CliRunner().invoke(app, args)
+    assert again.exit_code == 2 and "--force" in again.output
+
+
+def test_report_on_real_training_runs(tmp_path, tiny_pair):
+    """Two seeds of two arms trained for a few updates, then reported."""
+    source, artifact = tiny_pair
+    runner = CliRunner()
+    for data in ("source", "merged"):
+        result = runner.invoke(
+            app,
+            [
+                "train",
+                "hopper-m-r",
+                "--source",
+                source,
+                "--artifact",
+                str(artifact),
+                "--data",
+                data,
+                "--seeds",
+                "0-1",
+                "--steps",
+                "40",
+                "--eval-every",
+                "20",
+                "--eval-episodes",
+                "2",
+                "--batch-size",
+                "32",
+                "--out",
+                str(tmp_path / "runs"),
+            ],
+        )
+        assert result.exit_code == 0, result.output
+    out = tmp_path / "report"
+    result = runner.invoke(
+        app, ["report", str(tmp_path / "runs"), "--compare", "data=source", "--out", str(out)]
+    )
+    assert result.exit_code == 0, result.output
+    report = json.loads((out / "report.json").read_text())
+    assert sorted(g["data"] for g in report["groups"]) == ["merged", "source"]
+    assert all(g["seeds"] == [0, 1] for g in report["groups"])
+    assert report["comparisons"][0]["measures"]["last"]["paired_difference"]["seeds"] == [0, 1]
+    assert (out / "curves.png").is_file()
