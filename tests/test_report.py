@@ -69,7 +69,8 @@ def test_iqm_mean_and_intervals_over_seeds(two_arms):
     curve = groups["source"]["curve"]
     assert curve["steps"] == [100, 200, 300]
     assert curve["mean"] == pytest.approx([25 / 4, 25 / 2, 25])
-    assert all(lo <= m <= hi for lo, m, hi in zip(curve["ci_low"], curve["mean"], curve["ci_high"]))
+    bounds = zip(curve["ci_low"], curve["mean"], curve["ci_high"], strict=True)
+    assert all(lo <= m <= hi for lo, m, hi in bounds)
 
 
 def test_comparison_pairs_seeds(two_arms):
