@@ -31,6 +31,7 @@ from hipode_pipeline.files import output_lock, write_json_atomic
 from hipode_pipeline.generate import MAX_ETA
 from hipode_pipeline.learners import learner_class
 from hipode_pipeline.learners.base import Learner, fast_bf16
+from hipode_pipeline.loggers import check_logger, make_logger
 from hipode_pipeline.merge import MergedData, load_merged
 from hipode_pipeline.paths import stages_dir
 from hipode_pipeline.replay import MIXING_MODES, MixedReplay
@@ -288,6 +289,7 @@ def train_seeds(
     force: bool = False,
     show_progress: bool = True,
     allow_off_band: bool = False,
+    logger: str = "none",
 ) -> list[TrainResult]:
     """Train `learner` on `task`'s data (merged: source ⊕ its artifact; source: η = 0) for each
     of `seeds`, evaluate, and write one run folder per seed, the folder a run of that seed
@@ -302,6 +304,9 @@ def train_seeds(
     per_learner, run = settings[family], settings["run"]
     if mixing not in MIXING_MODES:
         raise HipodeError(f"--mixing: expected one of {MIXING_MODES}, found {mixing!r}")
+    check_logger(logger)
+    if logger != "none" and family == "d3rlpy":
+        raise SettingError("--logger: for the built-in learners (td3bc, iql, cql)")
     seeds = list(seeds)
     if not seeds or len(set(seeds)) != len(seeds) or len(seeds) > MAX_SEEDS:
         raise SettingError(
@@ -491,6 +496,7 @@ def train_seeds(
                 resume_step,
                 device=device_obj,
                 show_progress=show_progress,
+                logger=logger,
             ):
                 results[result.seed] = result
     return [results[seed] for seed in seeds]
@@ -521,6 +527,7 @@ def _train_group(
     *,
     device: torch.device,
     show_progress: bool,
+    logger: str = "none",
 ) -> list[TrainResult]:
     """Seeds at one step, trained as one stacked learner; each run folder written as a run of
     that seed alone writes it."""
@@ -561,7 +568,7 @@ def _train_group(
         truncate_metrics(seed_run.run_dir / "metrics.jsonl", resume_step)
         write_json_atomic(seed_run.run_dir / "config.json", seed_run.config)
 
-    train_seconds = _train_loop(model, replay, group, show_progress=show_progress)
+    train_seconds = _train_loop(model, replay, group, show_progress=show_progress, logger=logger)
     ran = model.step - resume_step
     results = []
     for seed_run in group:
@@ -637,10 +644,11 @@ def _train_loop(
     group: list[SeedRun],
     *,
     show_progress: bool,
+    logger: str = "none",
 ) -> float:
-    """Update every seed of `group` until `config["steps"]`, logging, evaluating and
-    checkpointing each seed's folder on schedule; appends to each seed's evaluations and
-    returns the seconds spent training (evaluation excluded)."""
+    """Update every seed of `group` until `config["steps"]`, logging (metrics.jsonl and
+    `logger`), evaluating and checkpointing each seed's folder on schedule; appends to each
+    seed's evaluations and returns the seconds spent training (evaluation excluded)."""
     config = group[0].config
     steps, eval_every, log_every = config["steps"], config["eval_every"], config["log_every"]
     batch_size = config["batch_size"]
@@ -651,6 +659,9 @@ def _train_loop(
     bar_time, bar_step = window_start, model.step
     with contextlib.ExitStack() as files, console.progress(disable=not show_progress) as prog:
         metrics_files = [files.enter_context(open(r.run_dir / "metrics.jsonl", "a")) for r in group]
+        loggers = [make_logger(logger, r.run_dir, r.config) for r in group]
+        for run_logger in loggers:
+            files.callback(run_logger.close)
         bar = prog.add_task(label, total=steps, completed=model.step, rate="", info="")
         # metric sums stay on the device between log lines: no host sync per update
         sums: dict[str, torch.Tensor] = {}
@@ -694,6 +705,7 @@ def _train_loop(
                     record["eval_returns"] = results[i].returns
                 metrics_files[i].write(json.dumps(record) + "\n")
                 metrics_files[i].flush()
+                loggers[i].log(step, record)
                 # after the metrics line: a resume drops any line newer than its checkpoint
                 save_checkpoint(
                     seed_run.run_dir / "checkpoint.pt",

@@ -282,3 +282,28 @@ def test_d3rlpy_gets_the_papers_alpha_and_iqls_reward_scaling(tmp_path, tiny_pai
     )
     settings = json.loads((Path(result.run_dir) / "config.json").read_text())["d3rlpy_settings"]
     assert expected.items() <= settings.items(), settings
+
+
+def test_tensorboard_logs_appear_when_asked(tmp_path, tiny_pair):
+    pytest.importorskip("tensorboard", reason="the tensorboard extra is not installed")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    source, artifact = tiny_pair
+    args = ["train", "hopper-m-r", "--source", source, "--artifact", str(artifact), *TINY]
+    args += ["--out", str(tmp_path / "runs"), "--logger", "tensorboard", "--json"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    run_dir = Path(json.loads(result.stdout)["run_dir"])
+    events = EventAccumulator(str(run_dir / "tensorboard"))
+    events.Reload()
+    tags = events.Tags()["scalars"]
+    assert "train/critic_loss" in tags and "eval/score_mean" in tags
+    assert [e.step for e in events.Scalars("eval/score_mean")] == [10, 20]
+
+
+def test_unknown_logger_is_refused_before_any_work(tmp_path, tiny_pair):
+    source, artifact = tiny_pair
+    args = ["train", "hopper-m-r", "--source", source, "--artifact", str(artifact), *TINY]
+    result = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "runs"), "--logger", "mlflow"])
+    assert result.exit_code == 2 and "--logger" in result.output
+    assert not (tmp_path / "runs").exists()

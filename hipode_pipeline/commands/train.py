@@ -115,6 +115,14 @@ def train_command(
     root: RootOption = None,
     force: ForceFlag = False,
     allow_off_band: AllowOffBandFlag = False,
+    logger: Annotated[
+        str,
+        typer.Option(
+            "--logger",
+            help="Also log metrics to tensorboard (<run>/tensorboard) or wandb (offline, "
+            "<run>/wandb); none: metrics.jsonl only.",
+        ),
+    ] = "none",
     json_output: JsonFlag = False,
 ) -> None:
     """Train an offline learner on the task's data, evaluate it, print its scores (resumes)."""
@@ -155,6 +163,7 @@ def train_command(
         force=force,
         allow_off_band=allow_off_band,
         show_progress=not json_output,
+        logger=logger,
     )
     if json_output:
         dumped = [result.to_dict() for result in results]

@@ -1,0 +1,108 @@
+"""Where a training run's metrics go besides metrics.jsonl: TensorBoard or Weights & Biases,
+through their own libraries (the `tensorboard` and `wandb` extras). W&B runs offline unless
+WANDB_MODE says otherwise, so it works without a network; `wandb sync` uploads later."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+from hipode_pipeline.errors import MissingExtraError, SettingError
+
+LOGGERS = ("none", "tensorboard", "wandb")
+
+
+class NullLogger:
+    def log(self, step: int, metrics: dict[str, Any]) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+class TensorBoardLogger:
+    """Scalars under <run>/tensorboard, one tag per metric."""
+
+    def __init__(self, run_dir: Path, config: dict[str, Any]):
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+        except ImportError:
+            raise MissingExtraError(
+                "--logger tensorboard needs tensorboard: pip install -e '.[tensorboard]'"
+            ) from None
+        self.writer = SummaryWriter(log_dir=str(run_dir / "tensorboard"))
+        self.writer.add_text("config", _config_text(config), 0)
+
+    def log(self, step: int, metrics: dict[str, Any]) -> None:
+        for name, value in _scalars(metrics).items():
+            self.writer.add_scalar(name, value, step)
+        self.writer.flush()
+
+    def close(self) -> None:
+        self.writer.close()
+
+
+class WandbLogger:
+    """One W&B run per training run, in <run>/wandb, offline by default."""
+
+    def __init__(self, run_dir: Path, config: dict[str, Any]):
+        try:
+            import wandb
+        except ImportError:
+            raise MissingExtraError(
+                "--logger wandb needs wandb: pip install -e '.[wandb]'"
+            ) from None
+        self.run = wandb.init(
+            project="hipode",
+            name=run_dir.name,
+            dir=str(run_dir),
+            config=config,
+            mode=os.environ.get("WANDB_MODE", "offline"),
+            reinit="create_new",
+        )
+
+    def log(self, step: int, metrics: dict[str, Any]) -> None:
+        self.run.log(_scalars(metrics), step=step)
+
+    def close(self) -> None:
+        self.run.finish()
+
+
+def make_logger(kind: str, run_dir: Path, config: dict[str, Any]):
+    if kind not in LOGGERS:
+        raise SettingError(f"--logger: expected one of {LOGGERS}, found {kind!r}")
+    if kind == "tensorboard":
+        return TensorBoardLogger(run_dir, config)
+    if kind == "wandb":
+        return WandbLogger(run_dir, config)
+    return NullLogger()
+
+
+def check_logger(kind: str) -> None:
+    """Refuse an unknown logger or a missing library before any work."""
+    if kind not in LOGGERS:
+        raise SettingError(f"--logger: expected one of {LOGGERS}, found {kind!r}")
+    module = {"tensorboard": "tensorboard", "wandb": "wandb"}.get(kind)
+    if module is not None:
+        import importlib.util
+
+        if importlib.util.find_spec(module) is None:
+            raise MissingExtraError(f"--logger {kind} needs {module}: pip install -e '.[{module}]'")
+
+
+def _scalars(metrics: dict[str, Any]) -> dict[str, float]:
+    """Numbers only, grouped by kind (train/…, eval/…); lists and None are left out."""
+    out = {}
+    for name, value in metrics.items():
+        if name == "step" or isinstance(value, bool) or not isinstance(value, int | float):
+            continue
+        group = "eval" if name.startswith("eval_") else "train"
+        out[f"{group}/{name.removeprefix('eval_')}"] = float(value)
+    return out
+
+
+def _config_text(config: dict[str, Any]) -> str:
+    import json
+
+    return "```\n" + json.dumps(config, indent=2, default=str)[:20_000] + "\n```"
