@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import sys
+import time
 from typing import Any
 
 from rich.console import Console
@@ -42,9 +43,70 @@ err = _console(stderr=True)
 out = _console(stderr=False)
 
 
+# seconds between two plain progress lines when stderr is not a terminal (logs, CI, nohup)
+LINE_EVERY_ENV = "HIPODE_PROGRESS_EVERY"
+LINE_EVERY_DEFAULT = 30.0
+
+
+class LineProgress(Progress):
+    """Progress for a log file: no live display, a plain line per task every `every` seconds
+    and when it finishes (count, share, rate, elapsed, ETA, info)."""
+
+    def __init__(self, *columns: Any, every: float, **options: Any):
+        super().__init__(*columns, disable=True, **options)
+        self.every = every
+        self._printed: dict[Any, float] = {}
+        self._finished: set[Any] = set()
+
+    def add_task(self, description: str, *args: Any, **fields: Any):
+        task_id = super().add_task(description, *args, **fields)
+        self._printed[task_id] = time.monotonic()
+        return task_id
+
+    def update(self, task_id, **fields: Any) -> None:
+        super().update(task_id, **fields)
+        self._line(task_id)
+
+    def advance(self, task_id, advance: float = 1) -> None:
+        super().advance(task_id, advance)
+        self._line(task_id)
+
+    def _line(self, task_id) -> None:
+        task = self._tasks[task_id]
+        now = time.monotonic()
+        finished = task.total is not None and task.completed >= task.total
+        if task_id in self._finished or (
+            not finished and now - self._printed[task_id] < self.every
+        ):
+            return
+        self._printed[task_id] = now
+        if finished:
+            self._finished.add(task_id)
+        share = f" ({100 * task.completed / task.total:.0f}%)" if task.total else ""
+        total = f"/{task.total:,.0f}" if task.total is not None else ""
+        eta = task.time_remaining
+        parts = [
+            f"{task.description}: {task.completed:,.0f}{total}{share}",
+            str(task.fields.get("rate", "")),
+            f"elapsed {_clock(task.elapsed or 0.0)}",
+            "" if finished or eta is None else f"ETA {_clock(eta)}",
+            str(task.fields.get("info", "")),
+        ]
+        self.console.print(Text("  ".join(p for p in parts if p)), highlight=False, soft_wrap=True)
+
+
+def _clock(seconds: float) -> str:
+    minutes, secs = divmod(int(seconds), 60)
+    hours, minutes = divmod(minutes, 60)
+    return f"{hours}:{minutes:02d}:{secs:02d}"
+
+
 def progress(*, disable: bool = False) -> Progress:
-    """A progress display with count, rate and ETA; task fields `rate` and `info` show extras."""
-    return Progress(
+    """A progress display with count, rate and ETA; task fields `rate` and `info` show extras.
+
+    Off a terminal it prints plain lines instead (every $HIPODE_PROGRESS_EVERY seconds, 30 by
+    default), since a live display would show nothing in a log until the end."""
+    columns = (
         TextColumn("[bold]{task.description}"),
         BarColumn(),
         MofNCompleteColumn(),
@@ -54,9 +116,11 @@ def progress(*, disable: bool = False) -> Progress:
         TextColumn("ETA"),
         TimeRemainingColumn(),
         TextColumn("{task.fields[info]}"),
-        console=err,
-        disable=disable,
     )
+    if not disable and not err.is_terminal:
+        every = float(os.environ.get(LINE_EVERY_ENV, LINE_EVERY_DEFAULT))
+        return LineProgress(*columns, every=every, console=err)
+    return Progress(*columns, console=err, disable=disable)
 
 
 def rate_text(done: float, elapsed: float, unit: str = "steps") -> str:

@@ -54,6 +54,12 @@ class UnsafeEnvError(HipodeError):
     """An environment id that is unknown or would run code from outside gymnasium."""
 
 
+class TrainingInterrupted(HipodeError):
+    """Ctrl-C during training: the state was checkpointed; rerunning resumes."""
+
+    exit_code = 130
+
+
 class MissingExtraError(HipodeError):
     """A feature that needs an optional extra the installation lacks (e.g. `adroit`)."""
 

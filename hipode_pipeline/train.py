@@ -11,6 +11,8 @@ from __future__ import annotations
 import contextlib
 import json
 import math
+import signal
+import threading
 import time
 import tomllib
 from collections.abc import Sequence
@@ -25,7 +27,7 @@ from hipode_pipeline.contract import find_artifact, table_learner, table_row
 from hipode_pipeline.data.bands import check_source_band
 from hipode_pipeline.data.load import load_source
 from hipode_pipeline.device import select_device
-from hipode_pipeline.errors import HipodeError, SettingError
+from hipode_pipeline.errors import HipodeError, SettingError, TrainingInterrupted
 from hipode_pipeline.evaluate import EvalResult, check_data_fits_env, evaluate_policies
 from hipode_pipeline.files import output_lock, write_json_atomic
 from hipode_pipeline.generate import MAX_ETA
@@ -666,7 +668,11 @@ def _train_loop(
         # metric sums stay on the device between log lines: no host sync per update
         sums: dict[str, torch.Tensor] = {}
         counts: dict[str, int] = {}
+        interrupted = files.enter_context(interrupt_flag())
         while model.step < steps:
+            if interrupted.is_set():
+                # between two updates: every seed's state is whole
+                _checkpoint_on_interrupt(model, replay, group)
             for name, value in model.update(replay.sample(batch_size)).items():
                 if name in sums:
                     sums[name].add_(value)
@@ -707,14 +713,7 @@ def _train_loop(
                 metrics_files[i].flush()
                 loggers[i].log(step, record)
                 # after the metrics line: a resume drops any line newer than its checkpoint
-                save_checkpoint(
-                    seed_run.run_dir / "checkpoint.pt",
-                    {
-                        "learner": model.seed_state(i),
-                        "replay": replay.seed_state(i),
-                        "evaluations": seed_run.evaluations,
-                    },
-                )
+                _save_seed_checkpoint(model, replay, group, i)
             prog.update(
                 bar,
                 completed=step,
@@ -728,6 +727,44 @@ def _train_loop(
             if not seed_run.evaluations or seed_run.evaluations[-1]["step"] != model.step:
                 seed_run.evaluations.append({"step": model.step, **result.summary()})
     return train_seconds
+
+
+def _save_seed_checkpoint(model: Learner, replay: MixedReplay, group: list[SeedRun], i: int):
+    save_checkpoint(
+        group[i].run_dir / "checkpoint.pt",
+        {
+            "learner": model.seed_state(i),
+            "replay": replay.seed_state(i),
+            "evaluations": group[i].evaluations,
+        },
+    )
+
+
+@contextlib.contextmanager
+def interrupt_flag():
+    """A flag Ctrl-C (SIGINT) sets instead of raising, so training stops between updates;
+    outside the main thread (no signal handling there) it is never set."""
+    flag = threading.Event()
+    if threading.current_thread() is not threading.main_thread():
+        yield flag
+        return
+    previous = signal.signal(signal.SIGINT, lambda *_: flag.set())
+    try:
+        yield flag
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _checkpoint_on_interrupt(model: Learner, replay: MixedReplay, group: list[SeedRun]):
+    """Ctrl-C: every seed's state at the last finished update goes to its checkpoint, so a
+    rerun of the same command resumes from there; then a clear message and exit code 130."""
+    for i in range(len(group)):
+        _save_seed_checkpoint(model, replay, group, i)
+    folders = ", ".join(str(r.run_dir) for r in group)
+    raise TrainingInterrupted(
+        f"interrupted after update {model.step:,}: checkpoint saved in {folders}; "
+        "run the same command again to resume from there"
+    ) from None
 
 
 def _window_means(sums: dict[str, torch.Tensor], counts: dict[str, int]) -> dict[str, list[float]]:

@@ -18,3 +18,35 @@ def test_log_output_is_wide_unless_columns_is_set(monkeypatch, capsys):
     assert INFO in capsys.readouterr().err
     monkeypatch.setenv("COLUMNS", "100")
     assert console._console(stderr=True).width == 100
+
+
+def test_progress_prints_plain_lines_off_a_terminal(monkeypatch, capsys):
+    from hipode_pipeline import console
+
+    monkeypatch.setenv(console.LINE_EVERY_ENV, "0")
+    monkeypatch.setattr(console.err, "_force_terminal", False)
+    with console.progress() as prog:
+        bar = prog.add_task("train", total=4, rate="", info="")
+        for step in range(1, 5):
+            prog.update(bar, completed=step, rate=f"{step} upd/s", info="score 1.0")
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith("train")]
+    assert len(lines) == 4 and lines[-1].startswith("train: 4/4 (100%)")
+    assert "upd/s" in lines[0] and "elapsed" in lines[0] and "ETA" not in lines[-1]
+    # a finished task prints once, however often it is updated afterwards
+    with console.progress() as prog:
+        bar = prog.add_task("gen", total=1, rate="", info="")
+        prog.update(bar, completed=1)
+        prog.update(bar, completed=1)
+    assert capsys.readouterr().err.count("gen: 1/1") == 1
+
+
+def test_progress_lines_are_spaced_in_time(monkeypatch, capsys):
+    from hipode_pipeline import console
+
+    monkeypatch.setenv(console.LINE_EVERY_ENV, "3600")
+    with console.progress() as prog:
+        bar = prog.add_task("train", total=1000, rate="", info="")
+        for step in range(1, 1001):
+            prog.update(bar, completed=step)
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith("train")]
+    assert lines == [lines[-1]] and lines[-1].startswith("train: 1,000/1,000")

@@ -307,3 +307,40 @@ def test_unknown_logger_is_refused_before_any_work(tmp_path, tiny_pair):
     result = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "runs"), "--logger", "mlflow"])
     assert result.exit_code == 2 and "--logger" in result.output
     assert not (tmp_path / "runs").exists()
+
+
+def test_ctrl_c_checkpoints_and_the_same_command_resumes(tmp_path, tiny_pair):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    source, artifact = tiny_pair
+    args = [sys.executable, "-m", "hipode_pipeline", "train", "hopper-m-r", "--source", source]
+    args += ["--artifact", str(artifact), "--steps", "500000", "--eval-every", "250000"]
+    args += ["--eval-episodes", "1", "--batch-size", "32", "--out", str(tmp_path / "runs")]
+    env = {**os.environ, "HIPODE_PROGRESS_EVERY": "0.5"}
+
+    def run_until(marker: str) -> tuple[str, str, int]:
+        process = subprocess.Popen(args, stderr=subprocess.PIPE, text=True, env=env)
+        seen, deadline = [], time.time() + 120
+        for line in process.stderr:  # wait until updates are running
+            seen.append(line)
+            if line.startswith(marker) or time.time() > deadline:
+                break
+        time.sleep(1.0)
+        process.send_signal(signal.SIGINT)
+        rest = process.stderr.read()
+        return "".join(seen), rest, process.wait(timeout=60)
+
+    _, rest, code = run_until("train td3bc")
+    assert code == 130, rest
+    assert "interrupted after update" in rest and "run the same command again" in rest
+    (run_dir,) = (tmp_path / "runs" / "hopper-m-r").iterdir()
+    stopped_at = torch.load(run_dir / "checkpoint.pt", weights_only=False)["learner"]["step"]
+    assert 0 < stopped_at < 500_000
+    assert f"interrupted after update {stopped_at:,}" in rest
+    # the same command resumes from that update
+    seen, rest, code = run_until("train td3bc")
+    assert f"from step {stopped_at}" in seen and code == 130, seen + rest
