@@ -13,13 +13,15 @@ one lever against the `paper` profile (the appendix's sizes, fixed budgets):
     check-mean   the dynamics check against the ensemble mean instead of a member's sample
     uncertainty  candidates ranked by their distance to the ensemble's mean in its own
                  predicted stds (members' variance plus disagreement)
+    projected    the ensemble's mean next state for (s, a~) written instead of the state
+                 model's proposal (an ablation beyond the paper)
 
 Targets (issue): kept transitions' median error <= 0.02 source stds on exact rows, HIPODE's
 median at matched novelty <= 0.5x the plain rollouts', stage one <= 1.5x the paper arm's wall.
 A finished (task, arm) is kept and not rerun (the sweep resumes across sessions); --force reruns.
 
     python bench/verify.py --tasks hopper-m-r walker2d-m-r halfcheetah-m-r \\
-        --arms paper plateau elites capacity value-units check-mean uncertainty
+        --arms paper plateau elites capacity value-units check-mean uncertainty projected
 
 Writes bench/results/verify.json, verify.md and verify.png (HIPODE and plain rollouts at matched
 novelty per task and arm). The machine may be shared: load averages are recorded.
@@ -66,6 +68,7 @@ ARMS: dict[str, dict] = {
     },
     "check-mean": {"profile": "paper", "augment": {"dynamics_mean": True}},
     "uncertainty": {"profile": "paper", "augment": {"uncertainty_check": True}},
+    "projected": {"profile": "paper", "augment": {"project_next_state": True}},
 }
 TARGET_MEDIAN, TARGET_RATIO, TARGET_WALL = 0.02, 0.5, 1.5
 

@@ -173,6 +173,7 @@ def run_augment(
     candidates: str = "model",
     dynamics_mean: bool = False,
     uncertainty_check: bool = False,
+    project_next_state: bool = False,
     profile: str = "full",
     seed: int = 0,
     out: Path | None = None,
@@ -208,6 +209,7 @@ def run_augment(
             candidates=candidates,
             dynamics_mean=dynamics_mean,
             uncertainty_check=uncertainty_check,
+            project_next_state=project_next_state,
         )
         overrides = {
             "alpha": params.alpha if alpha is None else alpha,
@@ -250,6 +252,7 @@ def run_augment(
             candidates=generation.candidates,
             dynamics_mean=generation.dynamics_mean,
             uncertainty_check=generation.uncertainty_check,
+            project_next_state=generation.project_next_state,
             profile=profile,
         )
         own_source = source is None or source in (task.name, task.local_dataset_id)

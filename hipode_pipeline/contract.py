@@ -42,6 +42,7 @@ class ArtifactSettings:
     candidates: str = "model"  # state-transition model | uniform (ablation)
     dynamics_mean: bool = False  # dynamics check against the ensemble mean
     uncertainty_check: bool = False  # ranking in the ensemble's own predicted stds
+    project_next_state: bool = False  # the ensemble's next state written instead of s~'
     profile: str = "full"  # generator budgets
 
     def variant_tags(self) -> list[str]:
@@ -57,6 +58,8 @@ class ArtifactSettings:
             tags.append("dynmean")
         if self.uncertainty_check:
             tags.append("dynunc")
+        if self.project_next_state:
+            tags.append("projected")
         if self.profile != "full":
             tags.append(self.profile)
         return tags
@@ -99,6 +102,7 @@ class ArtifactSettings:
                 candidates=str(params.get("candidates", "model")),
                 dynamics_mean=bool(params.get("dynamics_mean", False)),
                 uncertainty_check=bool(params.get("uncertainty_check", False)),
+                project_next_state=bool(params.get("project_next_state", False)),
                 profile=str(params.get("profile", "full")),
             )
         except (KeyError, TypeError, ValueError):

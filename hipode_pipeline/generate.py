@@ -48,6 +48,9 @@ class GenerationConfig:
     # rank by the distance to the ensemble's mean prediction in its own predicted stds (the
     # members' mean variance plus their disagreement), not in z-scored state units
     uncertainty_check: bool = False
+    # write the ensemble's mean next state for (s, a~) instead of the state model's proposal
+    # s~' (which still picks a~ and is what the check ranks); an ablation, not the paper's
+    project_next_state: bool = False
 
     def __post_init__(self) -> None:
         checks = {
@@ -144,6 +147,9 @@ def _evaluate_batch(
             states_norm, actions, generator=sampling, use_mean=config.dynamics_mean
         )
         errors = torch.linalg.vector_norm(dyna_next - next_norm, dim=1)
+    if config.project_next_state:
+        mean, _ = generators.dynamics.predictive(states_norm, actions)
+        next_norm = torch.where(has_finite[:, None], states_norm + mean[:, :-1], 0.0)
     finite = (
         has_finite
         & torch.isfinite(actions).all(1)

@@ -104,6 +104,7 @@ NESTED_MANIFEST_KEYS = {
         "candidates": "string",
         "dynamics_mean": "boolean",
         "uncertainty_check": "boolean",
+        "project_next_state": "boolean",
         "profile": "string",
         "generator_config": "object",
         "generator_config_hash": "string",

@@ -282,3 +282,50 @@ def test_uncertainty_check_ranks_in_the_ensembles_own_stds():
         show_progress=False,
     )
     assert set(plain.diagnostics["source_index"]) != set(rows)
+
+
+def test_projected_next_state_is_the_ensembles_mean_for_the_chosen_action():
+    from test_generation import DYNAMICS_W, StandIn, _source
+
+    from hipode_pipeline.data.normalizer import StateNormalizer
+    from hipode_pipeline.generate import GenerationConfig, generate
+
+    class WithPredictive(StandIn):
+        def __init__(self, normalizer):
+            super().__init__(normalizer)
+            self.dynamics.predictive = lambda states, actions: (
+                torch.cat(
+                    [
+                        torch.tanh(actions @ DYNAMICS_W) + 0.1 * torch.cos(3 * states),
+                        torch.zeros(len(states), 1),
+                    ],
+                    dim=1,
+                ),
+                torch.ones(len(states), 12),
+            )
+
+    source = _source()
+    normalizer = StateNormalizer.fit(source.observations)
+    config = GenerationConfig(eta=0.3, lam=0.2, n=4, batch_size=64, project_next_state=True)
+    result = generate(
+        WithPredictive(normalizer), source, config, env_id="Hopper-v5", seed=3, show_progress=False
+    )
+    plain = generate(
+        WithPredictive(normalizer),
+        source,
+        GenerationConfig(eta=0.3, lam=0.2, n=4, batch_size=64),
+        env_id="Hopper-v5",
+        seed=3,
+        show_progress=False,
+    )
+    # the same rows are kept (ranking is unchanged), with the model's next state written
+    np.testing.assert_array_equal(
+        result.diagnostics["source_index"], plain.diagnostics["source_index"]
+    )
+    states = torch.as_tensor(
+        normalizer.normalize(source.observations[result.diagnostics["source_index"]])
+    )
+    actions = torch.as_tensor(result.transitions.actions)
+    expected = states + torch.tanh(actions @ DYNAMICS_W) + 0.1 * torch.cos(3 * states)
+    np.testing.assert_allclose(result.next_states_normalized, expected, rtol=1e-5, atol=1e-6)
+    assert not np.allclose(plain.next_states_normalized, expected)

@@ -116,6 +116,14 @@ def augment_command(
             "predicted stds (members' variance plus disagreement).",
         ),
     ] = False,
+    project_next_state: Annotated[
+        bool,
+        typer.Option(
+            "--project-next-state",
+            help="Write the ensemble's mean next state for (s, a~) instead of the state "
+            "model's proposal (an ablation).",
+        ),
+    ] = False,
     profile: Annotated[
         Profile,
         typer.Option(
@@ -154,6 +162,7 @@ def augment_command(
         candidates=candidates.value,
         dynamics_mean=dynamics_mean,
         uncertainty_check=uncertainty_check,
+        project_next_state=project_next_state,
         profile=profile.value,
         seed=seed,
         out=out,
