@@ -111,7 +111,17 @@ def main() -> None:
     parser.add_argument(
         "--root", type=Path, default=None, help="dataset root (default: ./datasets)"
     )
+    parser.add_argument(
+        "--report-only",
+        action="store_true",
+        help="rewrite collect.md and the README table from collect.json; collect nothing",
+    )
     args = parser.parse_args()
+    if args.report_only:
+        report = json.loads((RESULTS / "collect.json").read_text())
+        (RESULTS / "collect.md").write_text(markdown(report))
+        update_readme(report)
+        return
     names = list(TASKS) if args.all else sorted(args.tasks, key=TASKS.index)
     torch.set_num_threads(1)
     root = use_datasets_root(args.root)

@@ -26,7 +26,7 @@ from hipode_pipeline.errors import DataFormatError, DatasetNotFoundError
 from hipode_pipeline.files import path_kind
 
 SCHEMA_NAME = "hipode-synthetic"
-SCHEMA_VERSION = "1.1"
+SCHEMA_VERSION = "1.2"
 # major versions this reader understands; a new major means an incompatible layout
 SUPPORTED_MAJORS = (1,)
 MANIFEST_ATTR = "manifest"

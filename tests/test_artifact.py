@@ -56,7 +56,7 @@ def test_round_trip_keeps_arrays_and_manifest(artifact_file):
         np.testing.assert_array_equal(artifact.transitions.arrays()[name], array)
     for name, array in diagnostics.items():
         np.testing.assert_array_equal(artifact.diagnostics[name], array)
-    assert artifact.manifest["schema"] == {"name": "hipode-synthetic", "version": "1.1"}
+    assert artifact.manifest["schema"] == {"name": "hipode-synthetic", "version": "1.2"}
     assert artifact.manifest["task"] == "hopper-m-r"
     assert artifact.manifest["checksum"].startswith("sha256:")
     assert artifact.manifest["manifest_checksum"] == manifest_checksum(artifact.manifest)
@@ -187,12 +187,13 @@ def test_missing_file_and_default_path(tmp_path, dataset_root):
 
 
 # Schema regression: the content checksum (unchanged since 1.0) and the manifest digest (since
-# 1.1) for fixed content. Files already written hold these values, so a change in their order,
-# encoding or field set would make them all unreadable.
+# 1.1; its text names the version, 1.2 now) for fixed content. Files already written hold these
+# values, so a change in their order, encoding or field set would make them all unreadable.
 GOLDEN_CHECKSUM_1_0 = "sha256:3e8a55a4c4f446fd13463971e1e7aefc9ffdb37be0ab8613c6d6e9abacab6186"
-# sha256 of the canonical text {"checksum":"<GOLDEN_CHECKSUM_1_0>","schema":{...,"version":"1.1"}}
-GOLDEN_MANIFEST_CHECKSUM_1_1 = (
-    "sha256:8cb9578d334e265ae5400c5d4b6e2568dcbf47c63c8330b5d1233c2c9da71adf"
+# sha256 of the canonical text {"checksum":"<GOLDEN_CHECKSUM_1_0>","schema":{...,"version":"1.2"}}
+# (with "1.1" it was sha256:8cb9578d334e265ae5400c5d4b6e2568dcbf47c63c8330b5d1233c2c9da71adf)
+GOLDEN_MANIFEST_CHECKSUM_1_2 = (
+    "sha256:d138ab25e11bb3ef6964aec408d0738b7a9cf32564299cca07736f6baf07cce4"
 )
 
 
@@ -213,4 +214,4 @@ def test_checksum_of_schema_1_0_is_stable(tmp_path):
     stored = write_artifact(tmp_path / "golden.hdf5", transitions, diagnostics, {})
     assert stored["checksum"] == GOLDEN_CHECKSUM_1_0
     assert read_artifact(tmp_path / "golden.hdf5").manifest["checksum"] == GOLDEN_CHECKSUM_1_0
-    assert stored["manifest_checksum"] == GOLDEN_MANIFEST_CHECKSUM_1_1
+    assert stored["manifest_checksum"] == GOLDEN_MANIFEST_CHECKSUM_1_2

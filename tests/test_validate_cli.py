@@ -27,7 +27,7 @@ def test_validate_accepts_the_reference(tmp_path):
     assert report == {
         "valid": True,
         "path": str(REFERENCE),
-        "schema": {"name": "hipode-synthetic", "version": "1.1"},
+        "schema": {"name": "hipode-synthetic", "version": "1.2"},
         "violations": [],
     }
 
@@ -76,7 +76,7 @@ def test_inspect_shows_manifest_and_statistics():
     assert result.exit_code == 0, result.output
     summary = json.loads(result.stdout)
     assert summary["manifest"]["task"] == "hopper-m-r"
-    assert summary["manifest"]["schema"] == "hipode-synthetic 1.1"
+    assert summary["manifest"]["schema"] == "hipode-synthetic 1.2"
     assert summary["manifest"]["rows"] == len(artifact)
     rewards = summary["statistics"]["rewards"]
     assert rewards["shape"] == [len(artifact)] and rewards["dtype"] == "float32"

@@ -20,7 +20,7 @@ HERE = Path(__file__).resolve().parent
 REFERENCE_NAME = "reference_artifact.hdf5"
 SCHEMA_NAME = "artifact_schema.json"
 # schema version -> committed file written by that version's writer (same content as MANIFEST)
-LEGACY_REFERENCES = {"1.0": "reference_artifact_1_0.hdf5"}
+LEGACY_REFERENCES = {"1.0": "reference_artifact_1_0.hdf5", "1.1": "reference_artifact_1_1.hdf5"}
 ROWS, OBS_DIM, ACT_DIM = 48, 3, 2
 # fixed, so the file's bytes depend only on the writer
 MANIFEST = {
