@@ -214,8 +214,12 @@ def markdown(runs: list[dict]) -> str:
         )
     lines += [
         "",
-        "met: median, matched ratio, wall (y/n each). Reused artifacts keep their first run's "
-        "stage-one time. Load averages and dates per row are in verify.json.",
+        "met: median, matched ratio, wall (y/n each). Stage one (s) is the arm's own run: "
+        "models it shares with an earlier arm of the task come from the generator cache, so "
+        "only the paper arm's time is from scratch (and the wall flag compares like with like "
+        "only for arms that retrain everything they change). Reused artifacts keep their first "
+        "run's time. Load averages and dates per row are in verify.json; the machine ran "
+        "collection and a second worker beside these runs.",
     ]
     return "\n".join(lines) + "\n"
 
