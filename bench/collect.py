@@ -94,8 +94,9 @@ steps would have cost another 75 minutes for little expected gain, so the recipe
 steps (`expert_steps`), and halfcheetah-e and halfcheetah-m-e are written marked off-band:
 `collect` exits non-zero for them, and `augment`/`train` refuse them without
 `--allow-off-band`. Rebuilt with that recipe (the halfcheetah rows above), the expert
-policy's independent evaluation is 63.8 normalized. Reaching the band needs a stronger trainer (D4RL's 256-wide SAC at one
-update per step is about 4x the compute per env step here) or a GPU."""
+policy's independent evaluation is 63.8 normalized. Reaching the band needs a stronger
+trainer (D4RL's 256-wide SAC at one update per step is about 4x the compute per env step here)
+or a GPU."""
 
 
 def _load() -> list[float]:
