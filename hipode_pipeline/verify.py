@@ -331,6 +331,13 @@ def behaviour_cvae(
         model.load_state_dict(training.load_tensors(weights, "a behaviour CVAE weights file"))
         record = {**json.loads(record_path.read_text()), "cached": True}
     else:
+        # minutes of training before any baseline row: say so, and that it happens once
+        console.err.print(
+            console.plain(
+                f"training the baseline's behaviour CVAE (a | s, {config.steps:,} steps); "
+                f"cached in {weights.parent} for later runs"
+            )
+        )
         tensors = {
             "s": torch.from_numpy(normalizer.normalize(source.observations).astype(np.float32)),
             "a": torch.from_numpy(np.ascontiguousarray(source.actions, dtype=np.float32)),

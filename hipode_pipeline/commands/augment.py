@@ -128,7 +128,8 @@ def augment_command(
         Profile,
         typer.Option(
             help="Generator settings: full (the defaults), paper (the appendix's sizes and the "
-            "first fixed budgets, whatever the defaults become) or quick (seconds, for tests)."
+            "first fixed budgets, whatever the defaults become) or quick (a few hundred steps per "
+            "model, for tests: still η·N rows, so minutes on a large source)."
         ),
     ] = Profile.full,
     seed: SeedOption = 0,
