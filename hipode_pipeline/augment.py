@@ -277,6 +277,13 @@ def run_augment(
         if out.exists() and not force:
             return _reuse_existing(out, request, seconds)
 
+        console.err.print(
+            console.plain(
+                _plan_line(task, info, len(transitions), generation, generator_config, profile)
+                + f"; {torch_device}, {stage_one_threads('train')} thread(s) training, "
+                f"{stage_one_threads('generate')} generating; -> {out}"
+            )
+        )
         clock = time.perf_counter()
         # each phase on the threads it was measured to want (collection sets its own)
         with torch_threads(stage_one_threads("train")):
@@ -384,6 +391,31 @@ def _table_text(row: dict[str, Any]) -> str:
     if not row:
         return "not recorded"
     return f"{row.get('learner')} row of {row.get('table')}, then any overrides"
+
+
+def _plan_line(
+    task: Task,
+    info: SourceInfo,
+    rows: int,
+    generation: GenerationConfig,
+    config: GeneratorConfig,
+    profile: str,
+) -> str:
+    """What stage one is about to do, before it trains: data, settings, what differs."""
+    base = GeneratorConfig.profile(profile).to_dict()
+    # alpha and sigma are shown anyway (they are per task); the rest only when overridden
+    changed = {
+        k: v
+        for k, v in config.to_dict().items()
+        if base.get(k) != v and k not in ("alpha", "sigma")
+    }
+    differs = ", ".join(f"{k}={v}" for k, v in sorted(changed.items()))
+    return (
+        f"stage one on {task.name}: {info.id} ({rows:,} rows, {info.env_id}); "
+        f"eta {generation.eta:g}, lambda {generation.lam:g}, n {generation.n}, "
+        f"alpha {config.alpha:g}, sigma {config.sigma:g}; profile {profile}"
+        + (f" with {differs}" if differs else "")
+    )
 
 
 def summary_path(artifact: Path) -> Path:

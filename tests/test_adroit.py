@@ -140,8 +140,13 @@ def test_pen_human_runs_through_quick_augment_and_training(tmp_path, dataset_roo
 
     monkeypatch.setattr(train_module, "evaluate_policies", evaluate_recording)
     runner = CliRunner()
-    augmented = runner.invoke(app, ["augment", "pen-h", "--profile", "quick", "--json"])
+    augmented = runner.invoke(
+        app, ["augment", "pen-h", "--profile", "quick", "--set", "dynamics_members=3", "--json"]
+    )
     assert augmented.exit_code == 0, augmented.output
+    # what it is about to do, before it trains: data, settings, what differs from the profile
+    assert "stage one on pen-h: D4RL/pen/human-v2 (240 rows, AdroitHandPen-v1)" in augmented.stderr
+    assert "eta 0.8" in augmented.stderr and "with dynamics_members=3" in augmented.stderr
     summary = json.loads(augmented.stdout)
     assert summary["source_id"] == "D4RL/pen/human-v2" and summary["kept"] > 0
     artifact = read_artifact(Path(summary["artifact"]))
