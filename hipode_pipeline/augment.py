@@ -282,7 +282,8 @@ def run_augment(
                 _plan_line(task, info, len(transitions), generation, generator_config, profile)
                 + f"; {torch_device}, {stage_one_threads('train')} thread(s) training, "
                 f"{stage_one_threads('generate')} generating; -> {out}"
-            )
+            ),
+            soft_wrap=True,
         )
         clock = time.perf_counter()
         # each phase on the threads it was measured to want (collection sets its own)
