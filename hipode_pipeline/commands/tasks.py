@@ -31,7 +31,11 @@ def tasks_command(json_output: JsonFlag = False) -> None:
     columns = list(rows[0])
     console.out.print(
         console.table(
-            "Tasks (eta, lambda: TD3+BC, Table 6)", columns, [[r[c] for c in columns] for r in rows]
+            "Tasks (eta, lambda: TD3+BC, Table 6). Scores use D4RL's reference returns; "
+            "locomotion data is collected here with Gymnasium v5 (hipode collect), "
+            "not D4RL's files",
+            columns,
+            [[r[c] for c in columns] for r in rows],
         )
     )
 
