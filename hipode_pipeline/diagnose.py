@@ -51,12 +51,6 @@ def spread(values: np.ndarray) -> dict[str, float]:
     }
 
 
-def heldout_rows(n: int, heldout_fraction: float, seed: int) -> np.ndarray:
-    """The source rows the generators of training seed `seed` held out (TensorData's split)."""
-    order = torch.randperm(n, generator=torch.Generator().manual_seed(derive_seed(seed, "split")))
-    return np.sort(order[: training.heldout_count(n, heldout_fraction)].numpy())
-
-
 def _ensemble_mean(generators: Generators, states: np.ndarray, actions: np.ndarray):
     """The dynamics ensemble's mean next state (raw units) and reward for raw (s, a) rows."""
     device = generators.device
@@ -105,7 +99,11 @@ def stage_diagnosis(
         "ensemble_on_kept_rows": spread(state_errors(predicted, simulated_next, std)),
         "check_distance": spread(state_errors(predicted, synthetic.next_observations, std)),
     }
-    rows = heldout_rows(len(source), generators.config.heldout_fraction, generator_seed)
+    # the rows the generators of that seed never trained on
+    _, heldout = training.split_rows(
+        len(source), generators.config.heldout_fraction, generator_seed
+    )
+    rows = np.sort(heldout.numpy())
     rng = np.random.default_rng(derive_seed(seed, "diagnose-heldout"))
     rows = np.sort(rng.choice(rows, size=min(sample, len(rows)), replace=False))
     states, actions = source.observations[rows], source.actions[rows]

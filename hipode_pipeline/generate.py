@@ -138,8 +138,9 @@ def _evaluate_batch(
     cond = torch.cat([states_norm, next_norm], dim=1)
     actions = generators.inverse_action.sample(cond, 1, generator=sampling)[:, 0]
     rewards = generators.inverse_reward.sample(cond, 1, generator=sampling)[:, 0, 0]
-    if config.uncertainty_check:
+    if config.uncertainty_check or config.project_next_state:
         mean, variance = generators.dynamics.predictive(states_norm, actions)
+    if config.uncertainty_check:
         dyna_next, dyna_rewards = states_norm + mean[:, :-1], mean[:, -1]
         errors = ((dyna_next - next_norm).pow(2) / variance[:, :-1]).mean(1).sqrt()
     else:
@@ -148,7 +149,6 @@ def _evaluate_batch(
         )
         errors = torch.linalg.vector_norm(dyna_next - next_norm, dim=1)
     if config.project_next_state:
-        mean, _ = generators.dynamics.predictive(states_norm, actions)
         next_norm = torch.where(has_finite[:, None], states_norm + mean[:, :-1], 0.0)
     finite = (
         has_finite

@@ -252,12 +252,12 @@ def test_verify_diagnoses_each_stage_on_held_out_real_rows(tiny_artifact, tmp_pa
 
 
 def test_heldout_rows_are_the_generators_own_split():
-    from hipode_pipeline.diagnose import heldout_rows
-    from hipode_pipeline.models.training import TensorData
+    from hipode_pipeline.models.training import TensorData, split_rows
 
     data = TensorData({"x": torch.zeros(1000, 1)}, 0.05, 4096, seed=7)
-    assert np.array_equal(heldout_rows(1000, 0.05, 7), np.sort(data.heldout_rows.numpy()))
-    assert not np.array_equal(heldout_rows(1000, 0.05, 8), heldout_rows(1000, 0.05, 7))
+    train, heldout = split_rows(1000, 0.05, 7)
+    assert torch.equal(heldout, data.heldout_rows) and torch.equal(train, data.train_rows)
+    assert len(heldout) == 50 and not torch.equal(split_rows(1000, 0.05, 8)[1], heldout)
 
 
 def test_matched_novelty_compares_like_with_like():

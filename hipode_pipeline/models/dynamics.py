@@ -181,15 +181,20 @@ class DynamicsEnsemble(nn.Module):
         """Per-member loss on held-out rows, (E,)."""
         return self.member_losses(states, actions, rewards, next_states).mean(-1)
 
+    def elite_stats(self, states: Tensor, actions: Tensor) -> tuple[Tensor, Tensor]:
+        """`stats` of the elite members only (all members when no elites are set)."""
+        mean, log_std = self.stats(states, actions)
+        if self.elites is None:
+            return mean, log_std
+        elites = torch.as_tensor(self.elites, device=mean.device)
+        return mean[elites], log_std[elites]
+
     @torch.no_grad()
     def predictive(self, states_norm: Tensor, actions: Tensor) -> tuple[Tensor, Tensor]:
         """The ensemble's (elites') predictive mean and variance of (delta s_norm, reward in
         model units, i.e. z-scored), (B, ds + 1) each: the members' mean variance plus the
         variance of their means (total variance)."""
-        mean, log_std = self.stats(states_norm, actions)
-        if self.elites is not None:
-            elites = torch.as_tensor(self.elites, device=mean.device)
-            mean, log_std = mean[elites], log_std[elites]
+        mean, log_std = self.elite_stats(states_norm, actions)
         mean, log_std = mean.float(), log_std.float()
         variance = (2 * log_std).exp().mean(0) + mean.var(0, unbiased=False)
         center = mean.mean(0)
@@ -210,10 +215,7 @@ class DynamicsEnsemble(nn.Module):
         `use_mean`: the members' mean prediction averaged over the ensemble. Only the elite
         members take part when elites are set.
         """
-        mean, log_std = self.stats(states_norm, actions)
-        if self.elites is not None:
-            elites = torch.as_tensor(self.elites, device=mean.device)
-            mean, log_std = mean[elites], log_std[elites]
+        mean, log_std = self.elite_stats(states_norm, actions)
         if use_mean:
             delta = mean.float().mean(0)
         else:

@@ -76,6 +76,16 @@ def heldout_count(rows: int, heldout_fraction: float) -> int:
     return min(max(1, round(rows * heldout_fraction)), rows - 1)
 
 
+def split_rows(rows: int, heldout_fraction: float, seed: int) -> tuple[Tensor, Tensor]:
+    """(train rows, held-out rows) of a `rows`-row dataset for training seed `seed`: the one
+    split every model of that seed trains with, and what diagnostics call held out."""
+    order = torch.randperm(
+        rows, generator=torch.Generator().manual_seed(derive_seed(seed, "split"))
+    )
+    n_heldout = heldout_count(rows, heldout_fraction)
+    return order[n_heldout:], order[:n_heldout]
+
+
 class TensorData:
     """Transition tensors preallocated on one device, split once into train and held-out rows."""
 
@@ -83,12 +93,9 @@ class TensorData:
         self.tensors = tensors
         n = next(iter(tensors.values())).shape[0]
         device = next(iter(tensors.values())).device
-        order = torch.randperm(
-            n, generator=torch.Generator().manual_seed(derive_seed(seed, "split"))
-        )
-        n_heldout = heldout_count(n, heldout_fraction)
-        self.heldout_rows = order[:n_heldout].to(device)
-        self.train_rows = order[n_heldout:].to(device)
+        train_rows, heldout_rows = split_rows(n, heldout_fraction, seed)
+        self.heldout_rows = heldout_rows.to(device)
+        self.train_rows = train_rows.to(device)
         self._heldout = {k: t[self.heldout_rows[:heldout_eval_rows]] for k, t in tensors.items()}
 
     def sample(self, batch_size: int, generator: torch.Generator) -> Batch:
