@@ -85,14 +85,16 @@ def stage_diagnosis(
     simulated_next: np.ndarray,
     source: Transitions,
     *,
+    next_state_std: np.ndarray,
+    reward_std: float,
     generator_seed: int,
     sample: int,
     seed: int,
     origin: str,
 ) -> dict[str, Any]:
-    """The per-stage errors of the module doc: kept rows and held-out real rows."""
-    std = source.next_observations.astype(np.float64).std(axis=0)
-    reward_std = float(source.rewards.astype(np.float64).std()) + STD_EPS
+    """The per-stage errors of the module doc: kept rows and held-out real rows, in units of
+    the source's next-state stds (`next_state_std`) and reward std."""
+    std = next_state_std
     predicted, _ = _ensemble_mean(generators, synthetic.observations, synthetic.actions)
     kept = {
         "total": spread(state_errors(synthetic.next_observations, simulated_next, std)),
@@ -129,7 +131,7 @@ def stage_diagnosis(
             **spread(one_step),
             "per_dimension": [round(float(x), 6) for x in per_dim],
             "reward_mean_abs_error_in_stds": float(
-                np.abs(model_rewards - rewards).mean() / reward_std
+                np.abs(model_rewards - rewards).mean() / (reward_std + STD_EPS)
             ),
             "elites": generators.dynamics.elites,
         },

@@ -39,7 +39,7 @@ from hipode_pipeline.data.load import load_recorded_source, load_source
 from hipode_pipeline.data.normalizer import StateNormalizer
 from hipode_pipeline.data.transitions import Transitions
 from hipode_pipeline.device import select_device
-from hipode_pipeline.diagnose import matched_novelty, stage_diagnosis, state_errors
+from hipode_pipeline.diagnose import STD_EPS, matched_novelty, stage_diagnosis, state_errors
 from hipode_pipeline.envs import termination_rule
 from hipode_pipeline.errors import DataFormatError, OverwriteError, SettingError
 from hipode_pipeline.files import (
@@ -65,8 +65,6 @@ from hipode_pipeline.simulator import check_env_id, clipped_velocity_rows, step_
 
 # a tenth of a source std per next-state dimension (and of the reward std) counts as authentic
 DEFAULT_TOLERANCE = 0.1
-# added to the source stds before dividing, so a constant dimension stays finite
-STD_EPS = 1e-6
 SUMMARY_QUANTITIES = ("next_state_error", "reward_error", "novelty")
 
 
@@ -425,6 +423,8 @@ def analyse(
     baseline: TransitionChecks,
     source: Transitions,
     *,
+    next_state_std: np.ndarray,
+    reward_std: float,
     generator_seed: int,
     sample: int,
     seed: int,
@@ -439,6 +439,8 @@ def analyse(
         synthetic,
         hipode.simulated_next,
         source,
+        next_state_std=next_state_std,
+        reward_std=reward_std,
         generator_seed=generator_seed,
         sample=sample,
         seed=seed,
@@ -675,6 +677,8 @@ def verify_artifact(
                 hipode_checks,
                 baseline_checks,
                 source,
+                next_state_std=next_state_std,
+                reward_std=reward_std,
                 generator_seed=_manifest_value(path, manifest, "seeds.generator_training", int),
                 sample=len(synthetic),
                 seed=seed,
@@ -762,15 +766,11 @@ STAGE_COLUMNS = ["stage", "rows", "median", "mean", "p90"]
 def stage_rows(report: VerifyReport) -> list[list[Any]]:
     """The per-stage errors (source stds per dimension) as table rows."""
     stages = (report.analysis or {}).get("stages", {})
-    kept = stages.get("kept", {})
+    kept, rows_kept = stages.get("kept", {}), len(report.hipode.next_state_error)
     named = [
-        ("kept: total vs simulator", report.hipode.summary()["n"], kept.get("total")),
-        (
-            "kept: ensemble vs simulator",
-            report.hipode.summary()["n"],
-            kept.get("ensemble_on_kept_rows"),
-        ),
-        ("kept: check distance", report.hipode.summary()["n"], kept.get("check_distance")),
+        ("kept: total vs simulator", rows_kept, kept.get("total")),
+        ("kept: ensemble vs simulator", rows_kept, kept.get("ensemble_on_kept_rows")),
+        ("kept: check distance", rows_kept, kept.get("check_distance")),
         ("real: inverse action", stages.get("heldout_rows"), stages.get("inverse_action_on_real")),
         (
             "real: recorded action",
