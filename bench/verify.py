@@ -44,7 +44,7 @@ import torch
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from hipode_pipeline.artifact import read_artifact  # noqa: E402
+from hipode_pipeline.artifact import read_manifest  # noqa: E402
 from hipode_pipeline.augment import run_augment  # noqa: E402
 from hipode_pipeline.verify import (  # noqa: E402
     plot_matched_novelty,
@@ -93,7 +93,8 @@ def run_arm(task: str, arm: str, sample: int, seed: int) -> dict:
     report = verify_artifact(
         out, sample=sample, seed=seed, out_dir=out.parent, force=True, show_progress=False
     )
-    generators = read_artifact(out).manifest.get("generators") or {}
+    # the manifest alone: verify read and checked the whole file above
+    generators = read_manifest(out).get("generators") or {}
     return {
         "task": task,
         "arm": arm,

@@ -4,6 +4,7 @@ WANDB_MODE says otherwise, so it works without a network; `wandb sync` uploads l
 
 from __future__ import annotations
 
+import importlib.util
 import os
 from pathlib import Path
 from typing import Any
@@ -25,12 +26,8 @@ class TensorBoardLogger:
     """Scalars under <run>/tensorboard, one tag per metric."""
 
     def __init__(self, run_dir: Path, config: dict[str, Any]):
-        try:
-            from torch.utils.tensorboard import SummaryWriter
-        except ImportError:
-            raise MissingExtraError(
-                "--logger tensorboard needs tensorboard: pip install -e '.[tensorboard]'"
-            ) from None
+        from torch.utils.tensorboard import SummaryWriter
+
         self.writer = SummaryWriter(log_dir=str(run_dir / "tensorboard"))
         self.writer.add_text("config", _config_text(config), 0)
 
@@ -47,12 +44,8 @@ class WandbLogger:
     """One W&B run per training run, in <run>/wandb, offline by default."""
 
     def __init__(self, run_dir: Path, config: dict[str, Any]):
-        try:
-            import wandb
-        except ImportError:
-            raise MissingExtraError(
-                "--logger wandb needs wandb: pip install -e '.[wandb]'"
-            ) from None
+        import wandb
+
         self.run = wandb.init(
             project="hipode",
             name=run_dir.name,
@@ -70,8 +63,7 @@ class WandbLogger:
 
 
 def make_logger(kind: str, run_dir: Path, config: dict[str, Any]):
-    if kind not in LOGGERS:
-        raise SettingError(f"--logger: expected one of {LOGGERS}, found {kind!r}")
+    check_logger(kind)
     if kind == "tensorboard":
         return TensorBoardLogger(run_dir, config)
     if kind == "wandb":
@@ -80,15 +72,12 @@ def make_logger(kind: str, run_dir: Path, config: dict[str, Any]):
 
 
 def check_logger(kind: str) -> None:
-    """Refuse an unknown logger or a missing library before any work."""
+    """Refuse an unknown logger or a missing library (named with its extra) before any work."""
     if kind not in LOGGERS:
         raise SettingError(f"--logger: expected one of {LOGGERS}, found {kind!r}")
-    module = {"tensorboard": "tensorboard", "wandb": "wandb"}.get(kind)
-    if module is not None:
-        import importlib.util
-
-        if importlib.util.find_spec(module) is None:
-            raise MissingExtraError(f"--logger {kind} needs {module}: pip install -e '.[{module}]'")
+    # each logger's library is the extra of the same name
+    if kind != "none" and importlib.util.find_spec(kind) is None:
+        raise MissingExtraError(f"--logger {kind} needs {kind}: pip install -e '.[{kind}]'")
 
 
 def _scalars(metrics: dict[str, Any]) -> dict[str, float]:

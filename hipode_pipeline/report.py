@@ -179,25 +179,32 @@ def _rliable():
     return library, metrics
 
 
+def _bootstrap(scores: Any, func, reps: int, seed: int) -> tuple[Any, np.ndarray]:
+    """rliable's stratified bootstrap of `func` on `scores`: (point estimate, CI array)."""
+    library, _ = _rliable()
+    with warnings.catch_warnings():
+        # arch, under rliable, warns that RandomState is deprecated; the seed is still honoured
+        warnings.simplefilter("ignore", FutureWarning)
+        point, interval = library.get_interval_estimates(
+            {"x": scores}, func, reps=reps, random_state=np.random.RandomState(seed)
+        )
+    return point["x"], interval["x"]
+
+
 def interval_estimates(values: np.ndarray, reps: int, seed: int) -> dict[str, Any]:
     """IQM and mean of per-seed `values` with stratified bootstrap 95 % CIs (rliable)."""
-    library, metrics = _rliable()
+    _, metrics = _rliable()
     scores = np.asarray(values, dtype=np.float64).reshape(-1, 1)
 
     def aggregates(x: np.ndarray) -> np.ndarray:
         return np.array([metrics.aggregate_iqm(x), metrics.aggregate_mean(x)])
 
-    with warnings.catch_warnings():
-        # arch, under rliable, warns that RandomState is deprecated; the seed is still honoured
-        warnings.simplefilter("ignore", FutureWarning)
-        point, interval = library.get_interval_estimates(
-            {"x": scores}, aggregates, reps=reps, random_state=np.random.RandomState(seed)
-        )
+    point, interval = _bootstrap(scores, aggregates, reps, seed)
     return {
-        "iqm": float(point["x"][0]),
-        "iqm_ci": [float(interval["x"][0, 0]), float(interval["x"][1, 0])],
-        "mean": float(point["x"][1]),
-        "mean_ci": [float(interval["x"][0, 1]), float(interval["x"][1, 1])],
+        "iqm": float(point[0]),
+        "iqm_ci": [float(interval[0, 0]), float(interval[1, 0])],
+        "mean": float(point[1]),
+        "mean_ci": [float(interval[0, 1]), float(interval[1, 1])],
         "std": float(scores.std(ddof=1)) if len(scores) > 1 else 0.0,
         "n": int(len(scores)),
     }
@@ -205,19 +212,10 @@ def interval_estimates(values: np.ndarray, reps: int, seed: int) -> dict[str, An
 
 def improvement(x: np.ndarray, y: np.ndarray, reps: int, seed: int) -> dict[str, Any]:
     """P(X > Y) over the two arms' seeds with its bootstrap CI (rliable)."""
-    library, metrics = _rliable()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", FutureWarning)
-        point, interval = library.get_interval_estimates(
-            {"p": (np.reshape(x, (-1, 1)), np.reshape(y, (-1, 1)))},
-            metrics.probability_of_improvement,
-            reps=reps,
-            random_state=np.random.RandomState(seed),
-        )
-    return {
-        "probability": float(point["p"]),
-        "ci": [float(interval["p"][0, 0]), float(interval["p"][1, 0])],
-    }
+    _, metrics = _rliable()
+    pair = (np.reshape(x, (-1, 1)), np.reshape(y, (-1, 1)))
+    point, interval = _bootstrap(pair, metrics.probability_of_improvement, reps, seed)
+    return {"probability": float(point), "ci": [float(interval[0, 0]), float(interval[1, 0])]}
 
 
 def paired_difference(x: dict[int, float], y: dict[int, float], reps: int, seed: int):
@@ -311,7 +309,8 @@ def build_report(
 def mean_curve(runs: list[Run], reps: int, seed: int) -> dict[str, list]:
     """Mean score over seeds at each step every run evaluated, with a bootstrap 95 % CI."""
     steps = sorted(set.intersection(*(set(r.steps) for r in runs)))
-    matrix = np.array([[dict(zip(r.steps, r.scores, strict=True))[s] for s in steps] for r in runs])
+    by_step = [dict(zip(r.steps, r.scores, strict=True)) for r in runs]
+    matrix = np.array([[scores[s] for s in steps] for scores in by_step])
     rng = np.random.default_rng(seed)
     picks = rng.integers(len(runs), size=(reps, len(runs)))
     means = matrix[picks].mean(axis=1)
