@@ -13,6 +13,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 from builders import make_minari_dataset
+from test_train_cli import TINY
 from typer.testing import CliRunner
 
 import hipode_pipeline.train as train_module
@@ -158,14 +159,7 @@ def test_pen_human_runs_through_quick_augment_and_training(tmp_path, dataset_roo
         [
             "train",
             "pen-h",
-            "--steps",
-            "20",
-            "--eval-every",
-            "10",
-            "--eval-episodes",
-            "2",
-            "--batch-size",
-            "32",
+            *TINY,
             "--out",
             str(tmp_path / "runs"),
             "--json",

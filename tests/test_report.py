@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_train_cli import TINY
 from typer.testing import CliRunner
 
 from hipode_pipeline.cli import app
@@ -138,14 +139,7 @@ def test_report_on_real_training_runs(tmp_path, tiny_pair):
                 data,
                 "--seeds",
                 "0-1",
-                "--steps",
-                "40",
-                "--eval-every",
-                "20",
-                "--eval-episodes",
-                "2",
-                "--batch-size",
-                "32",
+                *TINY,
                 "--out",
                 str(tmp_path / "runs"),
             ],
