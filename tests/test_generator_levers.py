@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from test_models import train
 from torch import nn
 
 from hipode_pipeline.data.transitions import Transitions
@@ -44,21 +45,17 @@ def fit_line(tmp_path, *, patience: int, steps: int = 3000, name: str = "line"):
     def heldout(batch):
         return (model(batch["x"]) - batch["y"]).pow(2).mean()
 
-    record = training.fit(
+    record = train(
         name,
         model,
         loss,
         heldout,
         data,
+        tmp_path,
         steps=steps,
         batch_size=64,
         lr=1e-2,
-        weight_decay=0.0,
-        seed=0,
-        precision="fp32",
         eval_every=20,
-        checkpoint_every=10**9,
-        checkpoint_path=tmp_path / f"{name}.ckpt.pt",
         keep_best="model",
         plateau_patience=patience,
         plateau_tolerance=1e-3,
@@ -83,21 +80,14 @@ def test_plateau_stopping_ends_early_and_keeps_the_best_weights(tmp_path):
 
 def test_plateau_stopping_needs_kept_weights(tmp_path):
     with pytest.raises(ValueError, match="best weights"):
-        training.fit(
+        train(
             "x",
             nn.Linear(1, 1),
             lambda b, g: (torch.zeros(()), torch.zeros(())),
             lambda b: torch.zeros(()),
             data,
+            tmp_path,
             steps=10,
-            batch_size=8,
-            lr=1e-3,
-            weight_decay=0.0,
-            seed=0,
-            precision="fp32",
-            eval_every=5,
-            checkpoint_every=100,
-            checkpoint_path=tmp_path / "x.pt",
             keep_best="none",
             plateau_patience=2,
         )

@@ -36,7 +36,10 @@ def train(
     batch_size=128,
     keep_best="none",
     after_step=None,
+    eval_every=50,
+    **stopping,
 ):
+    """`training.fit` with the tests' fixed settings; `stopping`: plateau_patience/tolerance."""
     return training.fit(
         name,
         model,
@@ -49,11 +52,12 @@ def train(
         weight_decay=0.0,
         seed=0,
         precision="fp32",
-        eval_every=50,
+        eval_every=eval_every,
         checkpoint_every=10**9,
         checkpoint_path=tmp_path / f"{name}.ckpt.pt",
         keep_best=keep_best,
         after_step=after_step,
+        **stopping,
     )
 
 
