@@ -21,7 +21,7 @@ $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	# torch pinned to the CPU build when absent: an unpinned torch pulls gigabytes of CUDA packages
 	$(BIN)/python -c "import torch" 2>/dev/null || $(BIN)/pip install -q "torch==$(TORCH_VERSION)"
-	$(BIN)/pip install -q -e ".[dev,plots,ray,adroit,report,tensorboard]"
+	$(BIN)/pip install -q -e ".[dev,plots,ray,adroit,report,tensorboard,wandb]"
 	touch $(STAMP)
 
 test: $(STAMP)

@@ -100,6 +100,24 @@ def export_d4rl(
         return {**summary, **_write_sidecar(out, file_sha256(out))}
 
 
+def export_minari(
+    artifact: Path,
+    source_spec: str,
+    dataset_id: str,
+    *,
+    root: Path | None = None,
+    force: bool = False,
+) -> dict[str, Any]:
+    """Source ⊕ synthetic as Minari dataset `dataset_id` under the dataset root, after the
+    artifact validates (hipode_pipeline.minari_export has the layout)."""
+    from hipode_pipeline.minari_export import check_dataset_id
+    from hipode_pipeline.minari_export import export_minari as write
+
+    check_dataset_id(dataset_id, root or datasets_root(), force)
+    require_valid(Path(artifact))
+    return write(artifact, source_spec, dataset_id, root=root, force=force)
+
+
 def import_artifact(path: Path, *, root: Path | None = None, force: bool = False) -> dict[str, Any]:
     """Validate an artifact (schema, checksum, and `path.sha256` if present) and copy it into
     `<root>/artifacts/`; an existing file there is replaced only with `force`."""

@@ -284,21 +284,36 @@ def test_d3rlpy_gets_the_papers_alpha_and_iqls_reward_scaling(tmp_path, tiny_pai
     assert expected.items() <= settings.items(), settings
 
 
+def _train_with_logger(logger, tmp_path, tiny_pair):
+    """A tiny training run with `--logger`; its run folder."""
+    source, artifact = tiny_pair
+    args = ["train", "hopper-m-r", "--source", source, "--artifact", str(artifact), *TINY]
+    args += ["--out", str(tmp_path / "runs"), "--logger", logger, "--json"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    return Path(json.loads(result.stdout)["run_dir"])
+
+
 def test_tensorboard_logs_appear_when_asked(tmp_path, tiny_pair):
     pytest.importorskip("tensorboard", reason="the tensorboard extra is not installed")
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    source, artifact = tiny_pair
-    args = ["train", "hopper-m-r", "--source", source, "--artifact", str(artifact), *TINY]
-    args += ["--out", str(tmp_path / "runs"), "--logger", "tensorboard", "--json"]
-    result = CliRunner().invoke(app, args)
-    assert result.exit_code == 0, result.output
-    run_dir = Path(json.loads(result.stdout)["run_dir"])
+    run_dir = _train_with_logger("tensorboard", tmp_path, tiny_pair)
     events = EventAccumulator(str(run_dir / "tensorboard"))
     events.Reload()
     tags = events.Tags()["scalars"]
     assert "train/critic_loss" in tags and "eval/score_mean" in tags
     assert [e.step for e in events.Scalars("eval/score_mean")] == [10, 20]
+
+
+def test_wandb_logs_offline_when_asked(tmp_path, tiny_pair, monkeypatch):
+    pytest.importorskip("wandb", reason="the wandb extra is not installed")
+    monkeypatch.delenv("WANDB_MODE", raising=False)  # offline is the default, no network needed
+    run_dir = _train_with_logger("wandb", tmp_path, tiny_pair)
+    offline = list((run_dir / "wandb").glob("offline-run-*"))
+    assert len(offline) == 1, list((run_dir / "wandb").iterdir())
+    history = list(offline[0].glob("*.wandb"))
+    assert history and b"eval/score_mean" in history[0].read_bytes()  # the logged scalars
 
 
 def test_unknown_logger_is_refused_before_any_work(tmp_path, tiny_pair):

@@ -70,34 +70,60 @@ def inspect_command(file: FileArgument, json_output: JsonFlag = False) -> None:
 def export_command(
     artifact: FileArgument,
     out: Annotated[
-        Path, typer.Option("--out", help="Where to write the copy.", callback=output_file)
-    ],
+        Path | None,
+        typer.Option(
+            "--out", help="Where to write the copy (not with --minari).", callback=output_file
+        ),
+    ] = None,
     d4rl: Annotated[
         bool,
         typer.Option("--d4rl", help="Write source ⊕ synthetic as one D4RL-format HDF5 file."),
     ] = False,
+    minari_id: Annotated[
+        str | None,
+        typer.Option(
+            "--minari",
+            help="Write source ⊕ synthetic as Minari dataset ID under --root "
+            "(synthetic rows as one-step episodes, flagged).",
+            show_default=False,
+        ),
+    ] = None,
     source: Annotated[
         str | None,
-        typer.Option("--source", help="With --d4rl: the source (task, Minari id or .hdf5)."),
+        typer.Option(
+            "--source", help="With --d4rl or --minari: the source (task, Minari id or .hdf5)."
+        ),
     ] = None,
     root: RootOption = None,
     force: ForceFlag = False,
     json_output: JsonFlag = False,
 ) -> None:
-    """Copy a validated ARTIFACT to --out with a .sha256 sidecar (or, with --d4rl, the merge)."""
-    from hipode_pipeline.sharing import export_artifact, export_d4rl
+    """Copy a validated ARTIFACT to --out with a .sha256 sidecar (or, with --d4rl or --minari,
+    write it merged with its source)."""
+    from hipode_pipeline.sharing import export_artifact, export_d4rl, export_minari
 
-    if d4rl and source is None:
+    merged = d4rl or minari_id is not None
+    if d4rl and minari_id is not None:
+        raise typer.BadParameter("choose one of --d4rl and --minari", param_hint="--minari")
+    if merged and source is None:
         raise typer.BadParameter(
-            "--d4rl needs the dataset the artifact was built from", param_hint="--source"
+            "--d4rl and --minari need the dataset the artifact was built from",
+            param_hint="--source",
         )
-    if source is not None and not d4rl:
-        raise typer.BadParameter("is used only with --d4rl", param_hint="--source")
-    summary = (
-        export_d4rl(artifact, source, out, root=root, force=force)
-        if d4rl
-        else export_artifact(artifact, out, force=force)
-    )
+    if source is not None and not merged:
+        raise typer.BadParameter("is used only with --d4rl or --minari", param_hint="--source")
+    if minari_id is not None and out is not None:
+        raise typer.BadParameter(
+            "is not used with --minari (it writes under --root)", param_hint="--out"
+        )
+    if minari_id is None and out is None:
+        raise typer.BadParameter("is needed: where to write the copy", param_hint="--out")
+    if minari_id is not None:
+        summary = export_minari(artifact, source, minari_id, root=root, force=force)
+    elif d4rl:
+        summary = export_d4rl(artifact, source, out, root=root, force=force)
+    else:
+        summary = export_artifact(artifact, out, force=force)
     _print_summary("Exported", summary, json_output)
 
 

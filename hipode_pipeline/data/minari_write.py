@@ -10,7 +10,7 @@ import contextlib
 import os
 import shutil
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -93,8 +93,13 @@ def write_minari_dataset(
     description: str,
     extra_metadata: dict[str, Any],
     force: bool = False,
+    infos: list[dict[str, np.ndarray]] | None = None,
+    finish: Callable[[Any], None] | None = None,
 ) -> Path:
-    """Create `dataset_id` under `root` from episode dicts, with `extra_metadata` added."""
+    """Create `dataset_id` under `root` from episode dicts, with `extra_metadata` added.
+
+    `infos` gives each episode's per-step info arrays (length T + 1, Minari's rule); `finish`
+    gets the staged MinariDataset to add to before it is moved into place."""
     import minari
     from minari.data_collector import EpisodeBuffer
     from minari.namespace import create_namespace, list_local_namespaces
@@ -114,7 +119,7 @@ def write_minari_dataset(
             rewards=e["rewards"],
             terminations=e["terminations"],
             truncations=e["truncations"],
-            infos={},
+            infos={} if infos is None else infos[i],
         )
         for i, e in enumerate(episodes)
     ]
@@ -132,6 +137,8 @@ def write_minari_dataset(
             description=description,
         )
         dataset.storage.update_metadata(extra_metadata)
+        if finish is not None:
+            finish(dataset)
     namespace = dataset_id.rsplit("/", 1)[0]
     with _minari_root(root):
         if namespace not in list_local_namespaces():
