@@ -33,7 +33,7 @@ from machine import cpu_name, load_average
 from hipode_pipeline.data.minari_write import write_minari_dataset
 from hipode_pipeline.data.transitions import Transitions
 from hipode_pipeline.merge import MergedData
-from hipode_pipeline.minari_export import SYNTHETIC_INFO, source_episodes, write_merged_minari
+from hipode_pipeline.minari_export import one_step_episode, source_episodes, write_merged_minari
 from hipode_pipeline.paths import use_datasets_root
 from hipode_pipeline.versions import package_versions
 
@@ -84,53 +84,26 @@ def write_direct(data: MergedData, root: Path, dataset_id: str) -> None:
 def write_with_minari(data: MergedData, root: Path, dataset_id: str, backend: str) -> None:
     """Every episode through Minari's writer: the source's, then one per synthetic row."""
     syn = data.synthetic
-    one_step = [
-        {
-            "observations": np.stack([syn.observations[i], syn.next_observations[i]]),
-            "actions": syn.actions[i : i + 1],
-            "rewards": syn.rewards[i : i + 1],
-            "terminations": syn.terminals[i : i + 1],
-            "truncations": ~syn.terminals[i : i + 1],
-        }
-        for i in range(len(syn))
-    ]
-    episodes = source_episodes(data.real) + one_step
-    if backend == "arrow":  # arrow checks dtypes against the env's spaces (float64 states)
-        for e in episodes:
+    episodes = source_episodes(data.real) + [one_step_episode(syn, i) for i in range(len(syn))]
+    for e in episodes:
+        if backend == "arrow":
+            # arrow checks dtypes against the env's spaces (float64 states), and Minari
+            # 0.5.4's arrow reader fails on a per-step bool info
             e["observations"] = e["observations"].astype(np.float64)
-    flags = [
-        np.full(len(e["observations"]), i >= len(episodes) - len(syn))
-        for i, e in enumerate(episodes)
-    ]
-    import minari.utils as mu
-
-    create = mu.create_dataset_from_buffers
-
-    def with_backend(*args, **kwargs):  # write_minari_dataset does not pass data_format
-        return create(*args, data_format=backend, **kwargs)
-
-    mu.create_dataset_from_buffers = with_backend
-    import minari
-
-    minari.create_dataset_from_buffers = with_backend
-    try:
-        write_minari_dataset(
-            dataset_id,
-            episodes,
-            env_id="Hopper-v5",
-            root=root,
-            staging=root / ".staging",
-            ref_min_score=-20.272305,
-            ref_max_score=3234.3,
-            algorithm_name="bench",
-            description="bench",
-            extra_metadata={},
-            # Minari 0.5.4's arrow reader fails on a per-step bool info: arrow runs without the flag
-            infos=None if backend == "arrow" else [{SYNTHETIC_INFO: f} for f in flags],
-        )
-    finally:
-        minari.create_dataset_from_buffers = create
-        mu.create_dataset_from_buffers = create
+            del e["infos"]
+    write_minari_dataset(
+        dataset_id,
+        episodes,
+        env_id="Hopper-v5",
+        root=root,
+        staging=root / ".staging",
+        ref_min_score=-20.272305,
+        ref_max_score=3234.3,
+        algorithm_name="bench",
+        description="bench",
+        extra_metadata={},
+        data_format=backend,
+    )
 
 
 def measure(arm: str, rows: int, work: Path, iterate: bool = True) -> dict:
@@ -242,8 +215,9 @@ def save(rows: list[dict]) -> str:
     }
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "minari_export.json").write_text(json.dumps(record, indent=2) + "\n")
-    (RESULTS / "minari_export.md").write_text(markdown(record))
-    return markdown(record)
+    text = markdown(record)
+    (RESULTS / "minari_export.md").write_text(text)
+    return text
 
 
 def main() -> None:

@@ -26,9 +26,7 @@ from hipode_pipeline.data.minari_source import DATA_FILE, is_dataset_id
 from hipode_pipeline.data.minari_write import dataset_dir, write_minari_dataset
 from hipode_pipeline.data.transitions import Transitions
 from hipode_pipeline.errors import DataFormatError, OverwriteError
-from hipode_pipeline.files import output_lock
-from hipode_pipeline.merge import MergedData, load_merged
-from hipode_pipeline.paths import datasets_root
+from hipode_pipeline.merge import MergedData
 
 SYNTHETIC_INFO = "is_synthetic"
 METADATA_KEY = "hipode"  # Minari metadata entry: counts, the synthetic ids and provenance
@@ -62,42 +60,50 @@ def source_episodes(real: Transitions) -> list[dict[str, np.ndarray]]:
                 "rewards": real.rewards[start:end],
                 "terminations": real.terminals[start:end],
                 "truncations": truncations,
+                "infos": {SYNTHETIC_INFO: np.zeros(end - start + 1, bool)},
             }
         )
     return episodes
+
+
+def one_step_episode(synthetic: Transitions, row: int) -> dict[str, np.ndarray]:
+    """Synthetic row `row` as a Minari episode: [s, s'], cut (truncated) unless terminal."""
+    terminal = synthetic.terminals[row : row + 1]
+    return {
+        "observations": np.stack([synthetic.observations[row], synthetic.next_observations[row]]),
+        "actions": synthetic.actions[row : row + 1],
+        "rewards": synthetic.rewards[row : row + 1],
+        "terminations": terminal,
+        "truncations": ~terminal,
+        "infos": {SYNTHETIC_INFO: np.ones(2, bool)},
+    }
 
 
 def append_one_step_episodes(
     data_file: Path, synthetic: Transitions, first_id: int, *, show_progress: bool = True
 ) -> None:
     """Append each synthetic transition to Minari's episode file as its own episode."""
-    with h5py.File(data_file, "a", track_order=True) as f:
-        flags = np.ones(2, bool)
-        with console.progress(disable=not show_progress) as prog:
-            bar = prog.add_task("minari episodes", total=len(synthetic), rate="", info="")
-            started = time.perf_counter()
-            # one HDF5 group per row is Minari's layout; the loop is over file objects
-            for row in range(len(synthetic)):
-                group = f.create_group(f"episode_{first_id + row}")
-                group.attrs["id"] = first_id + row
-                group.attrs["total_steps"] = 1
-                group.create_dataset(
-                    "observations",
-                    data=np.stack([synthetic.observations[row], synthetic.next_observations[row]]),
-                )
-                group.create_dataset("actions", data=synthetic.actions[row : row + 1])
-                group.create_dataset("rewards", data=synthetic.rewards[row : row + 1])
-                terminal = synthetic.terminals[row : row + 1]
-                group.create_dataset("terminations", data=terminal)
-                group.create_dataset("truncations", data=~terminal)
-                group.create_group("infos").create_dataset(SYNTHETIC_INFO, data=flags)
-                if (row + 1) % PROGRESS_CHUNK == 0 or row + 1 == len(synthetic):
-                    done = row + 1
-                    prog.update(
-                        bar,
-                        completed=done,
-                        rate=console.rate_text(done, time.perf_counter() - started, "rows"),
-                    )
+    with (
+        h5py.File(data_file, "a", track_order=True) as f,
+        console.progress(disable=not show_progress) as prog,
+    ):
+        bar = prog.add_task("minari episodes", total=len(synthetic), rate="", info="")
+        started = time.perf_counter()
+        # one HDF5 group per row is Minari's layout; the loop is over file objects
+        for row in range(len(synthetic)):
+            group = f.create_group(f"episode_{first_id + row}")
+            group.attrs["id"] = first_id + row
+            group.attrs["total_steps"] = 1
+            episode = one_step_episode(synthetic, row)
+            infos = group.create_group("infos")
+            for name, values in episode.pop("infos").items():
+                infos.create_dataset(name, data=values)
+            for name, values in episode.items():
+                group.create_dataset(name, data=values)
+            if (row + 1) % PROGRESS_CHUNK == 0 or row + 1 == len(synthetic):
+                elapsed = time.perf_counter() - started
+                rate = console.rate_text(row + 1, elapsed, "rows")
+                prog.update(bar, completed=row + 1, rate=rate)
 
 
 def check_dataset_id(dataset_id: str, root: Path, force: bool) -> Path:
@@ -121,26 +127,6 @@ def check_dataset_id(dataset_id: str, root: Path, force: bool) -> Path:
             f"{final}: dataset '{dataset_id}' already exists; pass --force to replace it"
         )
     return final
-
-
-def export_minari(
-    artifact: Path,
-    source_spec: str,
-    dataset_id: str,
-    *,
-    root: Path | None = None,
-    force: bool = False,
-    show_progress: bool = True,
-) -> dict[str, Any]:
-    """`hipode export --minari`: check the pair, write the Minari dataset, return a summary."""
-    root = root or datasets_root()
-    final = check_dataset_id(dataset_id, root, force)
-    merged = load_merged(source_spec, Path(artifact), root=root)
-    with output_lock(final, command="hipode export"):
-        check_dataset_id(dataset_id, root, force)
-        return write_merged_minari(
-            merged, dataset_id, root, force=force, show_progress=show_progress
-        )
 
 
 def write_merged_minari(
@@ -198,7 +184,6 @@ def write_merged_minari(
         description=f"{merged.source['id']} with {n_syn} HIPODE synthetic transitions",
         extra_metadata={METADATA_KEY: record},
         force=force,
-        infos=[{SYNTHETIC_INFO: np.zeros(len(e["observations"]), bool)} for e in episodes],
         finish=add_synthetic,
     )
     return {

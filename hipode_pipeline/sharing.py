@@ -108,14 +108,18 @@ def export_minari(
     root: Path | None = None,
     force: bool = False,
 ) -> dict[str, Any]:
-    """Source ⊕ synthetic as Minari dataset `dataset_id` under the dataset root, after the
-    artifact validates (hipode_pipeline.minari_export has the layout)."""
-    from hipode_pipeline.minari_export import check_dataset_id
-    from hipode_pipeline.minari_export import export_minari as write
+    """Source ⊕ synthetic as Minari dataset `dataset_id` under the dataset root, after the id
+    and the artifact check out (hipode_pipeline.minari_export has the layout)."""
+    from hipode_pipeline.merge import load_merged
+    from hipode_pipeline.minari_export import check_dataset_id, write_merged_minari
 
-    check_dataset_id(dataset_id, root or datasets_root(), force)
+    root = root or datasets_root()
+    final = check_dataset_id(dataset_id, root, force)
     require_valid(Path(artifact))
-    return write(artifact, source_spec, dataset_id, root=root, force=force)
+    merged = load_merged(source_spec, Path(artifact), root=root)
+    with output_lock(final, command="hipode export"):
+        check_dataset_id(dataset_id, root, force)  # another export may have made it meanwhile
+        return write_merged_minari(merged, dataset_id, root, force=force)
 
 
 def import_artifact(path: Path, *, root: Path | None = None, force: bool = False) -> dict[str, Any]:

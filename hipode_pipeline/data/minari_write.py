@@ -93,13 +93,13 @@ def write_minari_dataset(
     description: str,
     extra_metadata: dict[str, Any],
     force: bool = False,
-    infos: list[dict[str, np.ndarray]] | None = None,
     finish: Callable[[Any], None] | None = None,
+    data_format: str = "hdf5",
 ) -> Path:
     """Create `dataset_id` under `root` from episode dicts, with `extra_metadata` added.
 
-    `infos` gives each episode's per-step info arrays (length T + 1, Minari's rule); `finish`
-    gets the staged MinariDataset to add to before it is moved into place."""
+    An episode dict may hold `infos`, per-step info arrays (length T + 1, Minari's rule);
+    `finish` gets the staged MinariDataset to add to before it is moved into place."""
     import minari
     from minari.data_collector import EpisodeBuffer
     from minari.namespace import create_namespace, list_local_namespaces
@@ -119,7 +119,7 @@ def write_minari_dataset(
             rewards=e["rewards"],
             terminations=e["terminations"],
             truncations=e["truncations"],
-            infos={} if infos is None else infos[i],
+            infos=e.get("infos", {}),
         )
         for i, e in enumerate(episodes)
     ]
@@ -135,6 +135,7 @@ def write_minari_dataset(
             ref_min_score=ref_min_score,
             ref_max_score=ref_max_score,
             description=description,
+            data_format=data_format,
         )
         dataset.storage.update_metadata(extra_metadata)
         if finish is not None:
