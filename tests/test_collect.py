@@ -110,6 +110,12 @@ def test_policies_are_trained_once_and_reused(dataset_root):
     assert medium_policy.stat().st_mtime_ns == stamps[1]
     assert _steps(checkpoint) >= load_recipe("hopper", "quick").expert_steps
     assert set(expert.policy_returns) == {"expert"}
+    # every expert check is kept, in order, as the search's learning curve
+    meta_path = dataset_root / "local/hopper/expert-v0/data/metadata.json"
+    checks = json.loads(meta_path.read_text())["hipode"]["training"]["expert_checks"]
+    steps = [c["steps"] for c in checks]
+    assert steps == sorted(steps) and steps[-1] == _steps(checkpoint)
+    assert all(np.isfinite(c["normalized"]) for c in checks)
 
     # an existing dataset is left alone; force rebuilds it with the same content
     again = collect(get_task("hopper-m"), profile="quick", show_progress=False)

@@ -183,3 +183,28 @@ def test_a_missed_medium_target_is_searched_on_under_a_grown_budget(dataset_root
     assert int(torch.load(work / "ppo.pt", weights_only=True)["steps"]) == 1024
     after = np.load(work / "replay" / f"{0:012d}.npz")
     np.testing.assert_array_equal(before["rewards"], after["rewards"][: len(before["rewards"])])
+
+
+def test_bfloat16_matmuls_train_in_float32_weights_and_outputs():
+    with pytest.raises(ValueError, match="matmul_dtype"):
+        SACConfig(matmul_dtype="float16")
+    fast = dataclasses.replace(TINY, matmul_dtype="bfloat16")
+    plain, mixed = SACTrainer("HalfCheetah-v5", TINY, 5), SACTrainer("HalfCheetah-v5", fast, 5)
+    obs, actions = torch.randn(32, plain.envs.obs_dim), torch.rand(32, plain.envs.act_dim)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        q_mixed = mixed.critic(obs, actions)
+        _, log_prob = mixed.actor(obs, torch.randn(32, plain.envs.act_dim))
+    q_plain = plain.critic(obs, actions)
+    # the output layers run in float32, the hidden ones in bfloat16: close, not equal
+    assert q_mixed.dtype == log_prob.dtype == torch.float32
+    assert not torch.equal(q_mixed, q_plain)
+    torch.testing.assert_close(q_mixed, q_plain, rtol=0.05, atol=0.05)
+    for _ in range(6):
+        plain.train_iteration()
+        mixed.train_iteration()
+    assert mixed.updates == plain.updates > 0
+    assert all(p.dtype == torch.float32 for p in mixed.critic.parameters())
+    pairs = zip(mixed.actor.parameters(), plain.actor.parameters(), strict=True)
+    moved = [not torch.equal(a, b) for a, b in pairs]
+    assert any(moved)  # the same seed and data: only the matmul precision differs
+    assert load_recipe("halfcheetah").sac.matmul_dtype == "bfloat16"

@@ -94,19 +94,50 @@ def test_plateau_stopping_needs_kept_weights(tmp_path):
 
 
 def test_epoch_budgets_scale_with_the_dataset():
-    fixed = fit_settings(GeneratorConfig(), train_rows=100_000)
-    scaled = fit_settings(GeneratorConfig(budget_epochs=3.0), train_rows=100_000)
-    small = fit_settings(GeneratorConfig(budget_epochs=3.0), train_rows=10_000)
+    paper = GeneratorConfig.profile
+    fixed = fit_settings(paper("paper"), train_rows=100_000)
+    scaled = fit_settings(paper("paper", budget_epochs=3.0), train_rows=100_000)
+    small = fit_settings(paper("paper", budget_epochs=3.0), train_rows=10_000)
     assert fixed["state_transition"]["steps"] == 30_000 and fixed["dynamics"]["steps"] == 30_000
     for name in ("state_transition", "inverse_action", "inverse_reward", "dynamics"):
         assert scaled[name]["steps"] == math.ceil(3.0 * 100_000 / 256)
         assert small[name]["steps"] == math.ceil(3.0 * 10_000 / 256)
     # the value net's TD loss moves with its target: it keeps its fixed budget
     assert scaled["value"]["steps"] == small["value"]["steps"] == 50_000
-    stopping = fit_settings(GeneratorConfig(plateau_patience=4), train_rows=10)
+    stopping = fit_settings(paper("paper", plateau_patience=4), train_rows=10)
     assert stopping["dynamics"]["plateau_patience"] == 4
     assert stopping["inverse_action"]["plateau_patience"] == 4
     assert "plateau_patience" not in stopping["value"]
+
+
+def test_the_ensemble_can_keep_its_own_budget_and_stopping():
+    cvaes_only = GeneratorConfig(
+        budget_epochs=3.0,
+        plateau_patience=4,
+        dynamics_steps=70_000,
+        dynamics_budget_epochs=0.0,
+        dynamics_plateau_patience=0,
+    )
+    settings = fit_settings(cvaes_only, train_rows=100_000)
+    assert settings["inverse_action"]["steps"] == math.ceil(3.0 * 100_000 / 256)
+    assert settings["inverse_action"]["plateau_patience"] == 4
+    assert settings["dynamics"]["steps"] == 70_000
+    assert settings["dynamics"]["plateau_patience"] == 0
+    own = fit_settings(
+        GeneratorConfig(
+            budget_epochs=3.0, dynamics_budget_epochs=9.0, dynamics_plateau_patience=20
+        ),
+        train_rows=100_000,
+    )
+    assert own["dynamics"]["steps"] == math.ceil(9.0 * 100_000 / 256)
+    assert own["dynamics"]["plateau_patience"] == 20
+    # the CVAEs' cache keys ignore the ensemble's own settings; the ensemble's follows them
+    base = GeneratorConfig(budget_epochs=3.0, plateau_patience=4)
+    assert cvaes_only.model_key("inverse_action") == base.model_key("inverse_action")
+    assert cvaes_only.model_key("dynamics") != base.model_key("dynamics")
+    for bad in ({"dynamics_plateau_patience": -2}, {"dynamics_budget_epochs": -0.5}):
+        with pytest.raises(SettingError, match=next(iter(bad))):
+            GeneratorConfig(**bad)
 
 
 def ensemble_with_member_offsets(offsets: list[float]) -> DynamicsEnsemble:
@@ -214,6 +245,14 @@ def test_paper_profile_keeps_the_appendix_sizes_whatever_the_defaults():
     assert (paper.dynamics_members, paper.dynamics_hidden) == (5, (256, 256))
     assert (paper.dynamics_elites, paper.plateau_patience, paper.budget_epochs) == (0, 0, 0.0)
     assert paper.penalty_scale == "raw"
+    assert (paper.dynamics_steps, paper.dynamics_plateau_patience) == (30_000, -1)
+    # the defaults: CVAEs on epoch budgets stopped on a plateau, the ensemble on its own steps
+    full = fit_settings(GeneratorConfig.profile("full"), train_rows=100_000)
+    assert full["inverse_action"]["steps"] == math.ceil(60 * 100_000 / 256)
+    assert full["inverse_action"]["plateau_patience"] == 8
+    assert (full["dynamics"]["steps"], full["dynamics"]["plateau_patience"]) == (60_000, 0)
+    quick = fit_settings(GeneratorConfig.profile("quick"), train_rows=100_000)
+    assert quick["inverse_action"]["steps"] == quick["dynamics"]["steps"] == 300
     # overrides still win over the profile
     assert GeneratorConfig.profile("paper", cvae_hidden=64).cvae_hidden == 64
 
@@ -319,3 +358,49 @@ def test_projected_next_state_is_the_ensembles_mean_for_the_chosen_action():
     expected = states + torch.tanh(actions @ DYNAMICS_W) + 0.1 * torch.cos(3 * states)
     np.testing.assert_allclose(result.next_states_normalized, expected, rtol=1e-5, atol=1e-6)
     assert not np.allclose(plain.next_states_normalized, expected)
+
+
+def test_cosine_schedule_decays_the_step_size_to_zero(tmp_path):
+    def step_sizes(schedule: str) -> list[float]:
+        with training.seeded_init(0):
+            model = nn.Linear(1, 1)
+        sizes, previous = [], [model.weight.detach().clone()]
+
+        def loss(batch, generator):
+            value = (model(batch["x"]) - batch["y"]).pow(2).mean()
+            return value, value
+
+        def record_step(step: int) -> None:
+            now = model.weight.detach().clone()
+            sizes.append(float((now - previous[0]).abs()))
+            previous[0] = now
+
+        train(
+            f"cosine-{schedule}",
+            model,
+            loss,
+            lambda batch: (model(batch["x"]) - batch["y"]).pow(2).mean(),
+            data,
+            tmp_path,
+            steps=400,
+            batch_size=64,
+            lr=1e-2,
+            after_step=record_step,
+            lr_schedule=schedule,
+        )
+        return sizes
+
+    constant, cosine = step_sizes("constant"), step_sizes("cosine")
+    assert len(constant) == len(cosine) == 400
+    # the same start; cosine's steps are about half of constant's mid-way and near zero at the end
+    assert cosine[0] == pytest.approx(constant[0])
+    assert 0.3 < np.mean(cosine[190:210]) / np.mean(constant[190:210]) < 0.8
+    assert np.mean(cosine[-20:]) < 0.02 * np.mean(constant[-20:])
+    with pytest.raises(ValueError, match="lr_schedule"):
+        step_sizes("linear")
+    with pytest.raises(SettingError, match="dynamics_lr_schedule"):
+        GeneratorConfig(dynamics_lr_schedule="step")
+    assert (
+        fit_settings(GeneratorConfig(dynamics_lr_schedule="cosine"), 10)["dynamics"]["lr_schedule"]
+        == "cosine"
+    )

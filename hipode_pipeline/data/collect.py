@@ -356,6 +356,10 @@ def train_behaviour_policies(
                     check = policy_check(
                         task, recipe, trainer.policy(), seed, "expert", trainer.iteration
                     )
+                    # the learning curve of the expert search, kept in the dataset's metadata
+                    milestones.setdefault("expert_checks", []).append(
+                        {"steps": trainer.steps, "normalized": round(check["normalized"], 2)}
+                    )
                     best = milestones.get("expert_candidate", {}).get("check", {})
                     if check["normalized"] > best.get("normalized", -np.inf):
                         info = {**policy_info("expert", normalized, False), "check": check}
@@ -787,7 +791,9 @@ def _collect_in(
             "dataset_episode_return": _episode_return_stats(episodes, task),
             "medium_replay_subsampled": subsampled,
             "transitions": transitions,
-            "training": {k: v for k, v in milestones.items() if k in ("medium", "expert")},
+            "training": {
+                k: v for k, v in milestones.items() if k in ("medium", "expert", "expert_checks")
+            },
             "collect_seconds": {k: round(v, 3) for k, v in phases.items()},
             "versions": package_versions(),
         }

@@ -24,23 +24,39 @@ from hipode_pipeline.data.ppo import RolloutBlock
 from hipode_pipeline.data.trainer_base import BehaviourTrainer, TrainerConfig
 
 LOG_STD_BOUNDS = (-5.0, 2.0)  # keeps the policy's std in [0.007, 7.4] (as rlkit and CleanRL)
+MATMUL_DTYPES = {"float32": None, "bfloat16": torch.bfloat16}
+
+
+def _float32_layer(layer, h: torch.Tensor) -> torch.Tensor:
+    """The output layer outside autocast: Q values and log-densities keep float32's precision."""
+    with torch.autocast("cpu", enabled=False):
+        return layer(h.float())
 
 
 @dataclass(frozen=True)
 class SACConfig(TrainerConfig):
-    """SAC settings (Haarnoja et al. 2018's, except the width, update ratio and env count)."""
+    """SAC settings (Haarnoja et al. 2018's and D4RL's, except the env count)."""
 
     num_envs: int = 4  # environments stepped side by side
     rollout_steps: int = 50  # steps per environment between update phases
-    hidden: int = 128  # width of the two hidden layers (actor and both critics)
+    hidden: int = 256  # width of the two hidden layers (actor and both critics)
     batch_size: int = 256  # transitions per gradient update
     learning_rate: float = 3e-4  # Adam step size of actor, critics and temperature
     gamma: float = 0.99  # discount
     tau: float = 0.005  # Polyak rate of the target critics
-    updates_per_step: float = 0.5  # gradient updates per env transition (D4RL's SAC: 1)
+    updates_per_step: float = 1.0  # gradient updates per env transition
     start_steps: int = 5_000  # env steps of uniform random actions before the policy acts
     init_temperature: float = 1.0  # entropy weight at the start (learned towards -act_dim)
     buffer_size: int = 3_000_000  # transitions kept (at least the training budget: none dropped)
+    # hidden layers' matmuls in "bfloat16" (autocast; weights, outputs and losses stay float32)
+    matmul_dtype: str = "float32"
+
+    def __post_init__(self) -> None:
+        if self.matmul_dtype not in MATMUL_DTYPES:
+            raise ValueError(
+                f"sac.matmul_dtype: expected one of {sorted(MATMUL_DTYPES)}, "
+                f"found {self.matmul_dtype!r}"
+            )
 
 
 class TanhGaussianPolicy:
@@ -102,7 +118,8 @@ class SquashedActor(nn.Module):
 
     def forward(self, obs: torch.Tensor, noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Reparameterized actions and their log-densities (in action units) for given noise."""
-        mean, log_std = self.net(obs).chunk(2, dim=-1)
+        out = _float32_layer(self.net[-1], self.net[:-1](obs))
+        mean, log_std = out.chunk(2, dim=-1)
         log_std = log_std.clamp(*LOG_STD_BOUNDS)
         u = mean + log_std.exp() * noise
         # log N(u) - log|d tanh(u)/du| - log scale, the tanh term in its stable softplus form
@@ -142,12 +159,10 @@ class TwinCritic(nn.Module):
     def forward(self, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """(B, obs) and (B, act) -> (2, B) Q values."""
         h = torch.cat([obs, actions], -1).expand(2, -1, -1)
-        last = len(self.weights) - 1
-        for i, (w, b) in enumerate(zip(self.weights, self.biases, strict=True)):
-            h = torch.baddbmm(b, h, w)
-            if i < last:
-                h = torch.relu(h)
-        return h.squeeze(-1)
+        *hidden, (w_out, b_out) = zip(self.weights, self.biases, strict=True)
+        for w, b in hidden:
+            h = torch.relu(torch.baddbmm(b, h, w))
+        return _float32_layer(lambda x: torch.baddbmm(b_out, x, w_out), h).squeeze(-1)
 
 
 class ReplayBuffer:
@@ -234,6 +249,11 @@ class SACTrainer(BehaviourTrainer):
     # -- learning ------------------------------------------------------------------------------
 
     def _update(self) -> dict[str, torch.Tensor]:
+        dtype = MATMUL_DTYPES[self.config.matmul_dtype]
+        with torch.autocast("cpu", dtype=dtype or torch.bfloat16, enabled=dtype is not None):
+            return self._update_step()
+
+    def _update_step(self) -> dict[str, torch.Tensor]:
         c, buf = self.config, self.buffer
         idx = torch.randint(buf.size, (c.batch_size,), generator=self.generator)
         obs, actions, rewards = buf.obs[idx], buf.actions[idx], buf.rewards[idx]

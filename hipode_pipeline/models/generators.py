@@ -77,6 +77,9 @@ FIELD_OWNERS: dict[str, tuple[str, ...]] = {
         for f in (
             "dynamics_members",
             "dynamics_hidden",
+            "dynamics_plateau_patience",
+            "dynamics_budget_epochs",
+            "dynamics_lr_schedule",
             "dynamics_spectral_norm",
             "dynamics_loss",
             "dynamics_bound_loss_weight",
@@ -106,6 +109,9 @@ PAPER_PROFILE: dict[str, Any] = {
     "dynamics_steps": 30_000,
     "plateau_patience": 0,
     "budget_epochs": 0.0,
+    "dynamics_plateau_patience": -1,
+    "dynamics_budget_epochs": -1.0,
+    "dynamics_lr_schedule": "constant",
     "penalty_scale": "raw",
 }
 
@@ -114,8 +120,9 @@ PAPER_PROFILE: dict[str, Any] = {
 class GeneratorConfig:
     """Every setting of the five generators; [paper] and [decided] defaults from METHOD.md.
 
-    Budgets (steps) are per model and independent of the dataset size; the "full" profile's
-    time on hopper-m-r is in bench/results/models_precision.md.
+    The CVAEs' budgets are passes over the data (budget_epochs) stopped on a held-out plateau;
+    the ensemble and the value net train fixed step budgets. Profile "paper" keeps the fixed
+    budgets every model had before these became the defaults.
     """
 
     # --- the three CVAEs (state transition, inverse action, inverse reward) ---
@@ -155,20 +162,28 @@ class GeneratorConfig:
     dynamics_loss: str = "gaussian_nll"  # gaussian_nll | d3rlpy (e^2 / std + sum log std)
     dynamics_bound_loss_weight: float = 0.01  # [d3rlpy 1.x] pulls the log-std bounds together
     dynamics_lr: float = 1e-3  # [d3rlpy 1.x] Adam step size
+    dynamics_lr_schedule: str = "constant"  # constant | cosine (decays to 0 over the budget)
     dynamics_weight_decay: float = 1e-4  # [d3rlpy 1.x] Adam weight decay
     dynamics_batch_size: int = 256  # minibatch (d3rlpy: 100); each member learns from half of it
-    dynamics_steps: int = 30_000  # steps of the ensemble; best weights kept per member [decided]
+    # steps of the ensemble, best weights kept per member [decided]: twice the paper profile's
+    # 30k, which left it undertrained (bench/results/dynamics_fit.md, verify.md arm "fitted")
+    dynamics_steps: int = 60_000
     # --- shared training settings ---
     heldout_fraction: float = 0.05  # [decided] share of source transitions never trained on
     heldout_eval_rows: int = 8192  # held-out rows used per evaluation (caps its cost)
     eval_every: int = 500  # evaluate the held-out loss (and keep bests) every this many steps
     # stop a CVAE or the ensemble after this many evaluations in a row without its best held-out
     # loss falling by more than plateau_tolerance of it (0: always the whole budget)
-    plateau_patience: int = 0
+    plateau_patience: int = 8
     plateau_tolerance: float = 1e-3
     # > 0: CVAE and ensemble budgets are this many passes over the training rows (at their batch
     # size) instead of the fixed *_steps, so they scale with the dataset
-    budget_epochs: float = 0.0
+    budget_epochs: float = 60.0
+    # the ensemble's own stopping and budget: -1 follows plateau_patience / budget_epochs (as
+    # the CVAEs); 0 trains it for dynamics_steps whatever the CVAEs do (the default: stopped on
+    # a plateau it ended worse, bench/results/verify.md)
+    dynamics_plateau_patience: int = 0
+    dynamics_budget_epochs: float = 0.0
     checkpoint_every: int = 2_000  # write a resumable checkpoint every this many steps
     # fp32 | bf16 autocast, per model family: bf16 kept held-out losses equal within seed noise
     # and ran 1.3-1.7x faster on the CVAEs and the ensemble (bench/results/models_precision.md);
@@ -200,6 +215,19 @@ class GeneratorConfig:
             "budget_epochs": (
                 math.isfinite(self.budget_epochs) and self.budget_epochs >= 0,
                 "a finite number >= 0",
+            ),
+            "dynamics_plateau_patience": (
+                self.dynamics_plateau_patience >= -1,
+                "-1 (as plateau_patience) or a non-negative integer",
+            ),
+            "dynamics_budget_epochs": (
+                math.isfinite(self.dynamics_budget_epochs)
+                and (self.dynamics_budget_epochs >= 0 or self.dynamics_budget_epochs == -1),
+                "-1 (as budget_epochs) or a finite number >= 0",
+            ),
+            "dynamics_lr_schedule": (
+                self.dynamics_lr_schedule in training.LR_SCHEDULES,
+                f"one of {training.LR_SCHEDULES}",
             ),
             "dynamics_elites": (
                 0 <= self.dynamics_elites <= self.dynamics_members,
@@ -235,6 +263,8 @@ class GeneratorConfig:
             values = dict(PAPER_PROFILE)
         if name == "quick":
             values = {
+                "plateau_patience": 0,
+                "budget_epochs": 0.0,
                 "state_transition_steps": 300,
                 "inverse_action_steps": 300,
                 "inverse_reward_steps": 300,
@@ -370,10 +400,21 @@ def fit_settings(config: GeneratorConfig, train_rows: int) -> dict[str, dict[str
         **(stopping if config.cvae_keep_best else {}),
     )
 
-    def budget(fixed_steps: int, batch_size: int) -> int:
-        if config.budget_epochs <= 0:
+    def budget(fixed_steps: int, batch_size: int, epochs: float = config.budget_epochs) -> int:
+        if epochs <= 0:
             return fixed_steps
-        return max(1, math.ceil(config.budget_epochs * train_rows / batch_size))
+        return max(1, math.ceil(epochs * train_rows / batch_size))
+
+    dynamics_epochs = (
+        config.budget_epochs
+        if config.dynamics_budget_epochs == -1
+        else config.dynamics_budget_epochs
+    )
+    dynamics_patience = (
+        config.plateau_patience
+        if config.dynamics_plateau_patience == -1
+        else config.dynamics_plateau_patience
+    )
 
     return {
         "state_transition": dict(
@@ -394,13 +435,15 @@ def fit_settings(config: GeneratorConfig, train_rows: int) -> dict[str, dict[str
             steps=budget(config.inverse_reward_steps, config.cvae_batch_size), **cvae
         ),
         "dynamics": dict(
-            steps=budget(config.dynamics_steps, config.dynamics_batch_size),
+            steps=budget(config.dynamics_steps, config.dynamics_batch_size, dynamics_epochs),
             batch_size=config.dynamics_batch_size,
             lr=config.dynamics_lr,
             weight_decay=config.dynamics_weight_decay,
             keep_best="member",
             precision=config.dynamics_precision,
-            **stopping,
+            plateau_patience=dynamics_patience,
+            plateau_tolerance=config.plateau_tolerance,
+            lr_schedule=config.dynamics_lr_schedule,
         ),
     }
 

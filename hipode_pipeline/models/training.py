@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import math
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
@@ -23,6 +24,7 @@ from hipode_pipeline.seeding import derive_seed
 
 KEEP_BEST_MODES = ("none", "model", "member")
 PRECISIONS = ("fp32", "bf16")
+LR_SCHEDULES = ("constant", "cosine")  # cosine: lr * (1 + cos(pi * step / steps)) / 2
 
 Batch = dict[str, Tensor]
 # (batch, generator) -> (loss to minimize, loss to report)
@@ -155,6 +157,7 @@ def fit(
     keep_best: str,
     plateau_patience: int = 0,
     plateau_tolerance: float = 0.0,
+    lr_schedule: str = "constant",
     after_step: Callable[[int], None] | None = None,
     progress: Progress | None = None,
 ) -> TrainingRecord:
@@ -167,6 +170,8 @@ def fit(
     """
     if keep_best not in KEEP_BEST_MODES:
         raise ValueError(f"keep_best '{keep_best}': expected one of {KEEP_BEST_MODES}")
+    if lr_schedule not in LR_SCHEDULES:
+        raise ValueError(f"lr_schedule '{lr_schedule}': expected one of {LR_SCHEDULES}")
     if plateau_patience and keep_best == "none":
         raise ValueError("plateau stopping needs kept best weights (keep_best 'model'/'member')")
     device = next(model.parameters()).device
@@ -227,6 +232,10 @@ def fit(
     refresh_every = max(1, min(50, eval_every))
     stopped = False
     while step < steps and not stopped:
+        if lr_schedule == "cosine":
+            # a function of the step alone, so a resumed run follows the same schedule
+            for group in optimizer.param_groups:
+                group["lr"] = lr * (1 + math.cos(math.pi * step / steps)) / 2
         batch = data.sample(batch_size, generator)
         with autocast(device, precision):
             loss, _ = loss_fn(batch, generator)
