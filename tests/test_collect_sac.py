@@ -18,6 +18,7 @@ from hipode_pipeline.data.collect import collect, load_recipe, subsample_in_orde
 from hipode_pipeline.data.policies import load_policy
 from hipode_pipeline.data.ppo import RolloutBlock
 from hipode_pipeline.data.sac import SACConfig, SACTrainer, SquashedActor, TanhGaussianPolicy
+from hipode_pipeline.errors import DataFormatError
 from hipode_pipeline.tasks import get_task
 
 TINY = SACConfig(num_envs=2, rollout_steps=8, hidden=16, batch_size=16, start_steps=32)
@@ -188,6 +189,8 @@ def test_a_missed_medium_target_is_searched_on_under_a_grown_budget(dataset_root
 def test_bfloat16_matmuls_train_in_float32_weights_and_outputs():
     with pytest.raises(ValueError, match="matmul_dtype"):
         SACConfig(matmul_dtype="float16")
+    with pytest.raises(DataFormatError, match="collect.toml: field 'matmul_dtype'.*'float16'"):
+        SACConfig.from_dict({"matmul_dtype": "float16"}, "collect.toml")
     fast = dataclasses.replace(TINY, matmul_dtype="bfloat16")
     plain, mixed = SACTrainer("HalfCheetah-v5", TINY, 5), SACTrainer("HalfCheetah-v5", fast, 5)
     obs, actions = torch.randn(32, plain.envs.obs_dim), torch.rand(32, plain.envs.act_dim)

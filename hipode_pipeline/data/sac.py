@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -36,6 +36,8 @@ def _float32_layer(layer, h: torch.Tensor) -> torch.Tensor:
 @dataclass(frozen=True)
 class SACConfig(TrainerConfig):
     """SAC settings (Haarnoja et al. 2018's and D4RL's, except the env count)."""
+
+    CHOICES: ClassVar[dict[str, dict]] = {"matmul_dtype": MATMUL_DTYPES}  # checked on reading
 
     num_envs: int = 4  # environments stepped side by side
     rollout_steps: int = 50  # steps per environment between update phases

@@ -23,6 +23,9 @@ class TrainerConfig:
         unknown = sorted(set(values) - known)
         if unknown:
             raise DataFormatError(origin, unknown[0], f"one of {sorted(known)}", "an unknown key")
+        for name, allowed in getattr(cls, "CHOICES", {}).items():
+            if name in values and values[name] not in allowed:
+                raise DataFormatError(origin, name, f"one of {sorted(allowed)}", repr(values[name]))
         return cls(**values)
 
     def to_dict(self) -> dict[str, Any]:
