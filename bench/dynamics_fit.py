@@ -34,7 +34,7 @@ sys.path.insert(0, str(REPO))
 
 from hipode_pipeline.data.load import load_source  # noqa: E402
 from hipode_pipeline.data.normalizer import StateNormalizer  # noqa: E402
-from hipode_pipeline.diagnose import spread, state_errors  # noqa: E402
+from hipode_pipeline.diagnose import one_step_errors  # noqa: E402
 from hipode_pipeline.files import write_json_atomic, write_text_atomic  # noqa: E402
 from hipode_pipeline.models import generators, training  # noqa: E402
 
@@ -99,8 +99,8 @@ def run_one(task: str, variant: str, seed: int, root: Path | None) -> dict:
         )
     predicted = normalizer.denormalize(next_norm.float().numpy())
     recorded = transitions.next_observations[rows]
-    std = transitions.next_observations.std(axis=0)
-    per_dim = (np.abs(predicted - recorded) / (std + 1e-6)).mean(axis=0)
+    errors = one_step_errors(predicted, recorded, transitions.next_observations.std(axis=0))
+    per_dim = errors.pop("per_dimension")
     reward_std = float(transitions.rewards.std())
     reward_error = np.abs(rewards.float().numpy() - transitions.rewards[rows]).mean()
     return {
@@ -113,8 +113,8 @@ def run_one(task: str, variant: str, seed: int, root: Path | None) -> dict:
         "heldout_rows": int(len(rows)),
         "steps": settings["steps"],
         "seconds": round(record.seconds, 1),
-        "one_step": spread(state_errors(predicted, recorded, std)),
-        "per_dimension": [round(float(x), 5) for x in per_dim],
+        "one_step": errors,
+        "per_dimension": per_dim,
         "reward_error_in_stds": float(reward_error / (reward_std + 1e-6)),
         "best_heldout_loss": record.best_heldout_loss,
         "load_before": load_before,

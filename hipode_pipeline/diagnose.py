@@ -42,6 +42,16 @@ def state_errors(a: np.ndarray, b: np.ndarray, std: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(error), error, np.inf)
 
 
+def one_step_errors(predicted: np.ndarray, recorded: np.ndarray, std: np.ndarray) -> dict:
+    """A model's next states against recorded ones: the spread of `state_errors` over rows and
+    the mean error per dimension (same units)."""
+    per_dim = (np.abs(np.asarray(predicted, np.float64) - recorded) / (std + STD_EPS)).mean(axis=0)
+    return {
+        **spread(state_errors(predicted, recorded, std)),
+        "per_dimension": [round(float(x), 6) for x in per_dim],
+    }
+
+
 def spread(values: np.ndarray) -> dict[str, float]:
     values = np.asarray(values, np.float64)
     return {
@@ -119,8 +129,6 @@ def stage_diagnosis(
     )[0]
     reached_inverse, reached_recorded = both[: len(rows)], both[len(rows) :]
     model_next, model_rewards = _ensemble_mean(generators, states, actions)
-    per_dim = (np.abs(model_next - next_states) / (std + STD_EPS)).mean(axis=0)
-    one_step = state_errors(model_next, next_states, std)
     clipped = clipped_velocity_rows(env_id, states)
     return {
         "kept": kept,
@@ -128,8 +136,7 @@ def stage_diagnosis(
         "inverse_action_on_real": spread(state_errors(reached_inverse, next_states, std)),
         "recorded_action_on_real": spread(state_errors(reached_recorded, next_states, std)),
         "ensemble_one_step_on_real": {
-            **spread(one_step),
-            "per_dimension": [round(float(x), 6) for x in per_dim],
+            **one_step_errors(model_next, next_states, std),
             "reward_mean_abs_error_in_stds": float(
                 np.abs(model_rewards - rewards).mean() / (reward_std + STD_EPS)
             ),

@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 from collections import deque
 from dataclasses import asdict, fields
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -17,13 +17,23 @@ from hipode_pipeline.errors import DataFormatError
 class TrainerConfig:
     """Mixin of the trainers' frozen config dataclasses: strict reading, plain writing."""
 
+    # field -> its allowed values, checked on construction and, naming the file, on reading
+    CHOICES: ClassVar[dict[str, Any]] = {}
+
+    def __post_init__(self) -> None:
+        for name, allowed in self.CHOICES.items():
+            if getattr(self, name) not in allowed:
+                raise ValueError(
+                    f"{name}: expected one of {sorted(allowed)}, found {getattr(self, name)!r}"
+                )
+
     @classmethod
     def from_dict(cls, values: dict[str, Any], origin: str = "trainer config"):
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(values) - known)
         if unknown:
             raise DataFormatError(origin, unknown[0], f"one of {sorted(known)}", "an unknown key")
-        for name, allowed in getattr(cls, "CHOICES", {}).items():
+        for name, allowed in cls.CHOICES.items():
             if name in values and values[name] not in allowed:
                 raise DataFormatError(origin, name, f"one of {sorted(allowed)}", repr(values[name]))
         return cls(**values)

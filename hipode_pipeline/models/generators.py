@@ -405,15 +405,12 @@ def fit_settings(config: GeneratorConfig, train_rows: int) -> dict[str, dict[str
             return fixed_steps
         return max(1, math.ceil(epochs * train_rows / batch_size))
 
-    dynamics_epochs = (
-        config.budget_epochs
-        if config.dynamics_budget_epochs == -1
-        else config.dynamics_budget_epochs
-    )
-    dynamics_patience = (
-        config.plateau_patience
-        if config.dynamics_plateau_patience == -1
-        else config.dynamics_plateau_patience
+    def own_or_shared(own: float, shared: float) -> float:
+        return shared if own == -1 else own  # -1: the ensemble follows the CVAEs' setting
+
+    dynamics_epochs = own_or_shared(config.dynamics_budget_epochs, config.budget_epochs)
+    dynamics_patience = int(
+        own_or_shared(config.dynamics_plateau_patience, config.plateau_patience)
     )
 
     return {
