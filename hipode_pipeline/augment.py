@@ -21,7 +21,7 @@ import torch
 
 from hipode_pipeline import console
 from hipode_pipeline.artifact import SCHEMA_VERSION, read_artifact, write_artifact
-from hipode_pipeline.contract import ArtifactSettings, default_artifact_path, table_row
+from hipode_pipeline.contract import METHODS, ArtifactSettings, default_artifact_path, table_row
 from hipode_pipeline.data.bands import check_source_band
 from hipode_pipeline.data.load import load_source
 from hipode_pipeline.data.transitions import SourceInfo, Transitions
@@ -45,10 +45,11 @@ from hipode_pipeline.generate import (
 from hipode_pipeline.models.generators import GeneratorConfig, Generators, train_generators
 from hipode_pipeline.overrides import check_fields
 from hipode_pipeline.paths import use_datasets_root
+from hipode_pipeline.rollouts import RolloutConfig, behaviour_config, behaviour_cvae, model_rollouts
 from hipode_pipeline.seeding import SEED_MAX, derive_seed
 from hipode_pipeline.tasks import LEARNERS, Task, get_task
 from hipode_pipeline.threads import stage_one_threads, torch_threads
-from hipode_pipeline.versions import ARTIFACT_CODE, code_digest, package_versions
+from hipode_pipeline.versions import ARTIFACT_CODE, ROLLOUT_CODE, code_digest, package_versions
 
 COUNTED = ("source_states_drawn", "next_states_sampled", "nonfinite_dropped", "kept")
 
@@ -174,6 +175,7 @@ def run_augment(
     dynamics_mean: bool = False,
     uncertainty_check: bool = False,
     project_next_state: bool = False,
+    method: str = "hipode",
     profile: str = "full",
     seed: int = 0,
     out: Path | None = None,
@@ -189,7 +191,9 @@ def run_augment(
 
     Unset hyper-parameters take `learner`'s table row for the task (TD3+BC: Table 6, CQL:
     Table 5, IQL: Table 7). An existing artifact built from the same request is verified and
-    kept; any other existing file needs `force`.
+    kept; any other existing file needs `force`. `method` "model-rollouts" writes the plain
+    model-rollout baseline instead (`hipode_pipeline.rollouts`): the same generators and η·N
+    rows, one rollout per drawn state and no selection, so λ and n do not apply.
     """
     with contextlib.ExitStack() as held:
         seconds: dict[str, float] = {}
@@ -201,10 +205,21 @@ def run_augment(
                 f"found {learner!r}"
             )
         params = task.augment_params(learner)
+        rollouts = method == "model-rollouts"
+        check_method(
+            method,
+            lam=lam,
+            n=n,
+            selection=selection,
+            candidates=candidates,
+            uncertainty_check=uncertainty_check,
+            project_next_state=project_next_state,
+        )
         generation = GenerationConfig(
             eta=params.eta if eta is None else eta,
-            lam=params.lam if lam is None else lam,
-            n=params.n if n is None else n,
+            # a rollout is one proposal per state, all kept: what λ = 1, n = 1 mean for HIPODE
+            lam=1.0 if rollouts else params.lam if lam is None else lam,
+            n=1 if rollouts else params.n if n is None else n,
             selection=selection,
             candidates=candidates,
             dynamics_mean=dynamics_mean,
@@ -254,6 +269,7 @@ def run_augment(
             uncertainty_check=generation.uncertainty_check,
             project_next_state=generation.project_next_state,
             profile=profile,
+            method=method,
         )
         own_source = source is None or source in (task.name, task.local_dataset_id)
         out = (
@@ -269,9 +285,21 @@ def run_augment(
         )
         if not out_given:
             check_output_file(out, "the default artifact path")
-        request = ArtifactRequest(
-            task.name, info.sha256, asdict(generation), generator_config.to_dict(), seed
-        )
+        if rollouts:
+            rollout_config = RolloutConfig(eta=generation.eta, dynamics_mean=dynamics_mean)
+            behaviour = behaviour_config(profile)
+            request = ArtifactRequest(
+                task.name,
+                info.sha256,
+                {**asdict(rollout_config), "method": method, "behaviour": asdict(behaviour)},
+                generator_config.to_dict(),
+                seed,
+                code_digest=code_digest(ROLLOUT_CODE),
+            )
+        else:
+            request = ArtifactRequest(
+                task.name, info.sha256, asdict(generation), generator_config.to_dict(), seed
+            )
         # held to the end: a second augment into `out` waits, then finds it up to date
         held.enter_context(output_lock(out, command="hipode augment"))
         if out.exists() and not force:
@@ -297,18 +325,39 @@ def run_augment(
                 device=torch_device,
                 show_progress=show_progress,
             )
+            behaviour_record = None
+            if rollouts:
+                policy, behaviour_record = behaviour_cvae(
+                    transitions,
+                    generators.normalizer,
+                    behaviour,
+                    cache_dir=generators.cache_dir,
+                    seed=seed,
+                    device=generators.device,
+                )
         seconds["train"] = time.perf_counter() - clock
 
         clock = time.perf_counter()
         with torch_threads(stage_one_threads("generate")):
-            result = generate(
-                generators,
-                transitions,
-                generation,
-                env_id=env_id,
-                seed=seed,
-                show_progress=show_progress,
-            )
+            if rollouts:
+                result = model_rollouts(
+                    generators,
+                    policy,
+                    transitions,
+                    rollout_config,
+                    env_id=env_id,
+                    seed=seed,
+                    show_progress=show_progress,
+                )
+            else:
+                result = generate(
+                    generators,
+                    transitions,
+                    generation,
+                    env_id=env_id,
+                    seed=seed,
+                    show_progress=show_progress,
+                )
             source_norm = generators.normalizer.normalize(
                 torch.as_tensor(transitions.observations, device=generators.device)
             )
@@ -337,7 +386,9 @@ def run_augment(
             **{key: result.counts[key] for key in COUNTED},
             **statistics,
             "generators_cached": all(
-                r.get("cached", False) for r in generators.training_report.values()
+                r.get("cached", False)
+                for r in [*generators.training_report.values(), behaviour_record or {}]
+                if r
             ),
             "device": str(generators.device),
             "profile": profile,
@@ -356,6 +407,7 @@ def run_augment(
             result,
             record,
             request,
+            behaviour_record,
         )
         stored = write_artifact(out, result.transitions, result.diagnostics, manifest, force=force)
         seconds["write"] = time.perf_counter() - clock
@@ -369,6 +421,30 @@ def run_augment(
         )
         write_json_atomic(summary_path(out), summary.to_dict())
         return summary
+
+
+def check_method(method: str, **given: Any) -> None:
+    """`method` is known, and the plain rollouts get none of HIPODE's selection settings."""
+    if method not in METHODS:
+        raise SettingError(f"--method: expected one of {METHODS}, found {method!r}")
+    if method == "hipode":
+        return
+    # a setting of HIPODE's proposal or selection has no meaning for one rollout per state
+    unset = {
+        "lam": None,
+        "n": None,
+        "selection": "batch",
+        "candidates": "model",
+        "uncertainty_check": False,
+        "project_next_state": False,
+    }
+    misplaced = [name for name, value in given.items() if value != unset[name]]
+    if misplaced:
+        flags = ", ".join("--" + name.replace("_", "-") for name in misplaced)
+        raise SettingError(
+            f"--method {method}: {flags} do not apply (one rollout per drawn state, every "
+            "finite one kept); leave them out"
+        )
 
 
 def check_seed(seed: int) -> None:
@@ -498,6 +574,7 @@ def _manifest(
     result: GenerationResult,
     summary: dict[str, Any],
     request: ArtifactRequest,
+    behaviour_record: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The provenance stored in the artifact (DESIGN.md's manifest; the writer adds schema and
     checksum)."""
@@ -518,6 +595,7 @@ def _manifest(
         "table_row": summary["table_row"],
         "hyper_parameters": {
             **asdict(generation),
+            "method": "model-rollouts" if behaviour_record else "hipode",
             "alpha": generator_config.alpha,
             "sigma": generator_config.sigma,
             "penalty": generator_config.penalty,
@@ -536,6 +614,8 @@ def _manifest(
             "device": str(generators.device),
             "checkpoint_hashes": generators.checkpoint_hashes,
             "training_report": generators.training_report,
+            # the rollouts' behaviour policy (method model-rollouts only)
+            **({"behaviour_cvae": behaviour_record} if behaviour_record else {}),
         },
         "versions": package_versions(),
         "counts": result.counts,

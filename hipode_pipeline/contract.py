@@ -26,6 +26,8 @@ LEARNER_TABLES = {"td3bc": "Table 6", "cql": "Table 5", "iql": "Table 7"}
 # d3rlpy algorithms that are one of the paper's learners take that learner's table row
 D3RLPY_TABLE_ROWS = {"TD3PlusBC": "td3bc", "IQL": "iql", "CQL": "cql"}
 TABLE_FIELDS = ("eta", "lam", "n", "alpha", "sigma")
+# how an artifact's rows are proposed: HIPODE, or the plain model-rollout baseline
+METHODS = ("hipode", "model-rollouts")
 
 
 @dataclass(frozen=True)
@@ -44,10 +46,11 @@ class ArtifactSettings:
     uncertainty_check: bool = False  # ranking in the ensemble's own predicted stds
     project_next_state: bool = False  # the ensemble's next state written instead of s~'
     profile: str = "full"  # generator budgets
+    method: str = "hipode"  # how rows are proposed: HIPODE | plain model rollouts (baseline)
 
     def variant_tags(self) -> list[str]:
         """Name parts for every setting off its default, in a fixed order."""
-        tags = []
+        tags = [] if self.method == "hipode" else [self.method]
         if self.penalty != "target":
             tags.append(f"penalty-{self.penalty}")
         if self.selection != "batch":
@@ -104,6 +107,7 @@ class ArtifactSettings:
                 uncertainty_check=bool(params.get("uncertainty_check", False)),
                 project_next_state=bool(params.get("project_next_state", False)),
                 profile=str(params.get("profile", "full")),
+                method=str(params.get("method", "hipode")),
             )
         except (KeyError, TypeError, ValueError):
             return None

@@ -23,7 +23,6 @@ the dataset root (`load_recorded_source`), unless the caller names the source it
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import time
 from dataclasses import asdict, dataclass
@@ -45,12 +44,9 @@ from hipode_pipeline.errors import DataFormatError, OverwriteError, SettingError
 from hipode_pipeline.files import (
     file_sha256,
     save_figure_atomic,
-    save_torch_atomic,
-    write_json_atomic,
     write_text_atomic,
 )
 from hipode_pipeline.generate import novelty
-from hipode_pipeline.models import training
 from hipode_pipeline.models.cvae import CVAE
 from hipode_pipeline.models.generators import (
     MODEL_NAMES,
@@ -60,33 +56,13 @@ from hipode_pipeline.models.generators import (
     train_generators,
 )
 from hipode_pipeline.paths import use_datasets_root
+from hipode_pipeline.rollouts import BehaviourCVAEConfig, behaviour_cvae, rollout_step
 from hipode_pipeline.seeding import derive_seed
 from hipode_pipeline.simulator import check_env_id, clipped_velocity_rows, step_from_observations
 
 # a tenth of a source std per next-state dimension (and of the reward std) counts as authentic
 DEFAULT_TOLERANCE = 0.1
 SUMMARY_QUANTITIES = ("next_state_error", "reward_error", "novelty")
-
-
-@dataclass(frozen=True)
-class BehaviourCVAEConfig:
-    """The baseline's behaviour policy: a CVAE a | s trained on the source (small budget)."""
-
-    steps: int = 5_000  # Adam steps
-    batch_size: int = 256  # transitions per step
-    lr: float = 1e-3  # Adam learning rate
-    hidden: int = 750  # hidden width of encoder and decoder (as the generators' CVAEs)
-    latent_per_action_dim: int = 2  # latent size = this * action dim (BCQ's choice)
-    kl_weight: float = 0.5  # weight of the KL term
-    latent_clip: float = 0.5  # |z| bound when sampling
-    heldout_fraction: float = 0.05  # share of source transitions never trained on
-    heldout_eval_rows: int = 4096  # held-out rows per evaluation
-    eval_every: int = 500  # evaluate and keep the best weights every this many steps
-    checkpoint_every: int = 2_000  # resumable checkpoint every this many steps
-
-    def hash(self) -> str:
-        """The cache key of trained weights."""
-        return hashlib.sha256(json.dumps(asdict(self), sort_keys=True).encode()).hexdigest()
 
 
 @dataclass(frozen=True, eq=False)
@@ -295,88 +271,6 @@ def check_transitions(
     )
 
 
-def behaviour_cvae(
-    source: Transitions,
-    normalizer: StateNormalizer,
-    config: BehaviourCVAEConfig,
-    *,
-    cache_dir: Path,
-    seed: int,
-    device: torch.device,
-    progress=None,
-) -> tuple[CVAE, dict[str, Any]]:
-    """A CVAE a | s (s z-scored) trained on the source, or loaded from
-    `cache_dir/behaviour_cvae-<config hash[:12]>-seed<seed>.pt`; returns the model and its
-    training record."""
-    weights = cache_dir / f"behaviour_cvae-{config.hash()[:12]}-seed{seed}.pt"
-    record_path = weights.with_suffix(".json")
-    with training.seeded_init(derive_seed(seed, "init:behaviour_cvae")):
-        model = CVAE(
-            source.act_dim,
-            source.obs_dim,
-            latent_dim=config.latent_per_action_dim * source.act_dim,
-            hidden=config.hidden,
-            kl_weight=config.kl_weight,
-            latent_clip=config.latent_clip,
-            squash=True,
-        )
-    # the source's action range bounds the decoder, as for the inverse action model
-    model.set_output_bounds(
-        torch.from_numpy(source.actions.min(0)), torch.from_numpy(source.actions.max(0))
-    )
-    model.to(device)
-    if weights.exists() and record_path.exists():
-        model.load_state_dict(training.load_tensors(weights, "a behaviour CVAE weights file"))
-        record = {**json.loads(record_path.read_text()), "cached": True}
-    else:
-        # minutes of training before any baseline row: say so, and that it happens once
-        console.err.print(
-            console.plain(
-                f"training the baseline's behaviour CVAE (a | s, {config.steps:,} steps); "
-                f"cached in {weights.parent} for later runs"
-            )
-        )
-        tensors = {
-            "s": torch.from_numpy(normalizer.normalize(source.observations).astype(np.float32)),
-            "a": torch.from_numpy(np.ascontiguousarray(source.actions, dtype=np.float32)),
-        }
-        data = training.TensorData(
-            {k: v.to(device) for k, v in tensors.items()},
-            config.heldout_fraction,
-            config.heldout_eval_rows,
-            seed,
-        )
-
-        def heldout(batch):
-            generator = torch.Generator(device=batch["s"].device).manual_seed(0)
-            return model.loss(batch["a"], batch["s"], generator)[0]
-
-        result = training.fit(
-            "behaviour_cvae",
-            model,
-            lambda batch, generator: model.loss(batch["a"], batch["s"], generator),
-            heldout,
-            data,
-            steps=config.steps,
-            batch_size=config.batch_size,
-            lr=config.lr,
-            weight_decay=0.0,
-            seed=seed,
-            precision="fp32",
-            eval_every=config.eval_every,
-            checkpoint_every=config.checkpoint_every,
-            checkpoint_path=weights.with_suffix(".ckpt.pt"),
-            keep_best="model",
-            progress=progress,
-        )
-        save_torch_atomic(weights, model.state_dict())
-        record = {**result.to_dict(), "config": asdict(config)}
-        write_json_atomic(record_path, record)
-        weights.with_suffix(".ckpt.pt").unlink(missing_ok=True)
-    model.eval().requires_grad_(False)
-    return model, {**record, "weights": str(weights.name)}
-
-
 def plain_rollouts(
     source: Transitions,
     generators: Generators,
@@ -397,9 +291,8 @@ def plain_rollouts(
     states = source.observations[rows]
     with torch.no_grad():
         states_norm = generators.normalizer.normalize(torch.as_tensor(states, device=device))
-        actions = policy.sample(states_norm, 1, generator=sampling)[:, 0]
-        next_norm, rewards = generators.dynamics.sample(
-            states_norm, actions, generator=sampling, use_mean=use_mean
+        actions, next_norm, rewards = rollout_step(
+            generators, policy, states_norm, sampling, use_mean
         )
     next_states = generators.normalizer.denormalize(next_norm.float().cpu().numpy())
     next_states = next_states.astype(np.float32)

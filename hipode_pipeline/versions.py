@@ -21,6 +21,8 @@ GENERATOR_CODE = ("models", "data/normalizer.py", "seeding.py")
 # ... and those that determine an artifact's rows beyond its generators (Algorithm 1 and the
 # termination rules; the driver and the file writer only move the rows)
 ARTIFACT_CODE = (*GENERATOR_CODE, "generate.py", "envs.py")
+# ... and those of the plain model-rollout baseline's rows (its behaviour model and rollouts)
+ROLLOUT_CODE = (*ARTIFACT_CODE, "rollouts.py")
 
 
 def package_versions() -> dict[str, str | None]:

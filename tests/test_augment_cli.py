@@ -1,6 +1,7 @@
 """`hipode augment` end to end with the real generators (quick profile) on a tiny dataset."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -151,3 +152,34 @@ def test_missing_source_that_cannot_be_collected_fails_cleanly(tmp_path):
     )
     assert result.exit_code != 0
     assert "absent.hdf5" in result.stderr and "Traceback" not in result.output
+
+
+def test_model_rollout_baseline_on_the_same_generators(first_run, tmp_path):
+    root, first, _ = first_run
+    assert first.exit_code == 0, first.output
+    quick = ["augment", "hopper-m-r", "--profile", "quick", "--root", str(root)]
+    runner = CliRunner()
+    refused = runner.invoke(app, [*quick, "--method", "model-rollouts", "--lam", "0.5"])
+    assert refused.exit_code != 0 and "--lam" in refused.stderr
+    assert "Traceback" not in refused.output
+    result = runner.invoke(app, [*quick, "--method", "model-rollouts", "--json"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout)
+    path = Path(summary["artifact"])
+    assert path.name == "hopper-m-r-eta0.5-lam1-n1-alpha1-sigma1-model-rollouts-quick-seed0.hdf5"
+    assert summary["kept"] == json.loads(first.stdout)["kept"]  # the same η·N as HIPODE's
+    artifact = read_artifact(path)
+    manifest = artifact.manifest
+    assert manifest["hyper_parameters"]["method"] == "model-rollouts"
+    assert manifest["generators"]["behaviour_cvae"]["steps"] == 300
+    hipode = read_artifact(Path(json.loads(first.stdout)["artifact"])).manifest
+    # the five generators are HIPODE's own, read from its cache
+    assert manifest["generators"]["checkpoint_hashes"] == hipode["generators"]["checkpoint_hashes"]
+    assert manifest["request"]["code_digest"] != hipode["request"]["code_digest"]
+    assert not summary["generators_cached"]  # the behaviour model was trained here
+    valid = runner.invoke(app, ["validate", str(path)])
+    assert valid.exit_code == 0, valid.output
+    again = runner.invoke(app, [*quick, "--method", "model-rollouts", "--force", "--json"])
+    assert again.exit_code == 0, again.output
+    assert json.loads(again.stdout)["generators_cached"] is True
+    assert read_artifact(path).manifest["checksum"] == manifest["checksum"]

@@ -272,3 +272,14 @@ def test_synthetic_stats_refuse_an_artifact_of_another_source(tmp_path):
     assert stats["rows"] == 20
     with pytest.raises(DataFormatError, match="sha256"):
         plan.synthetic_stats(tmp_path / "art.hdf5", load_source(str(other)))
+
+
+def test_model_rollout_arms_follow_the_stage_one_seeds():
+    config = plan.SweepConfig(model_rollouts=True, artifact_seeds=[1, 2])
+    arms = {a.name: a for a in plan.arms_for(config)}
+    assert arms["model-rollouts"].augment == {"method": "model-rollouts"}
+    assert arms["model-rollouts-seed2"].augment == {"method": "model-rollouts", "seed": 2}
+    assert arms["model-rollouts-seed1"].data == "merged"
+    assert {"hipode", "artifact-seed1", "artifact-seed2"} <= set(arms)
+    assert "--model-rollouts" in driver.command_line(config)
+    assert "model-rollouts" not in {a.name for a in plan.arms_for(plan.SweepConfig())}

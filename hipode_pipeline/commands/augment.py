@@ -52,6 +52,11 @@ class Candidates(StrEnum):
     uniform = "uniform"
 
 
+class Method(StrEnum):
+    hipode = "hipode"
+    model_rollouts = "model-rollouts"
+
+
 @user_errors
 def augment_command(
     task: Annotated[
@@ -124,6 +129,13 @@ def augment_command(
             "model's proposal (an ablation).",
         ),
     ] = False,
+    method: Annotated[
+        Method,
+        typer.Option(
+            help="hipode, or model-rollouts: the plain model-rollout baseline (behaviour-model "
+            "action, dynamics-ensemble next state, every rollout kept) on the same generators.",
+        ),
+    ] = Method.hipode,
     profile: Annotated[
         Profile,
         typer.Option(
@@ -164,6 +176,7 @@ def augment_command(
         dynamics_mean=dynamics_mean,
         uncertainty_check=uncertainty_check,
         project_next_state=project_next_state,
+        method=method.value,
         profile=profile.value,
         seed=seed,
         out=out,

@@ -118,6 +118,14 @@ def sweep_command_for(
         union: Annotated[
             bool, typer.Option("--union", help="Ablation: sample source ∪ synthetic uniformly.")
         ] = False,
+        model_rollouts: Annotated[
+            bool,
+            typer.Option(
+                "--model-rollouts",
+                help="Baseline: plain model rollouts (behaviour-model action, dynamics-ensemble "
+                "next state) on the same generators and η, at every stage-one seed.",
+            ),
+        ] = False,
         lam: Annotated[
             str,
             typer.Option(
@@ -219,6 +227,7 @@ def sweep_command_for(
             lams=parse_list(lam, float, "--lam"),
             penalties=parse_list(penalty, str, "--penalty"),
             union=union,
+            model_rollouts=model_rollouts,
             artifact_seed=artifact_seed,
             artifact_seeds=parse_list(artifact_seeds, int, "--artifact-seeds"),
             baseline_arms=not no_baselines,

@@ -71,6 +71,7 @@ def command_line(config: SweepConfig) -> str:
     if config.penalties:
         args += ["--penalty", ",".join(config.penalties)]
     args += ["--union"] if config.union else []
+    args += ["--model-rollouts"] if config.model_rollouts else []
     if config.artifact_seed:
         args += ["--artifact-seed", str(config.artifact_seed)]
     if config.artifact_seeds:

@@ -62,6 +62,9 @@ class SweepConfig:
     lams: list[float] = field(default_factory=list)  # ablation: selecting rates
     penalties: list[str] = field(default_factory=list)  # ablation: value-penalty forms
     union: bool = False  # ablation: sample the union uniformly instead of η·B per batch
+    # baseline: plain model rollouts (behaviour-model action, ensemble next state) on the same
+    # generators and η, at the artifact seed and at every --artifact-seeds seed
+    model_rollouts: bool = False
     artifact_seeds: list[int] = field(default_factory=list)  # control: the hipode arm's
     # settings with artifacts of other stage-one seeds (how much one artifact differs from another)
     baseline_arms: bool = True  # run the eta0 and hipode arms (off: ablation arms only)
@@ -143,6 +146,19 @@ def arms_for(config: SweepConfig) -> list[Arm]:
         Arm(f"artifact-seed{seed}", "merged", {"seed": seed}, f"HIPODE, stage-one seed {seed}")
         for seed in config.artifact_seeds
     ]
+    if config.model_rollouts:
+        rollouts = {"method": "model-rollouts"}
+        label = "plain model rollouts (MB), same models and η"
+        arms.append(Arm("model-rollouts", "merged", rollouts, label))
+        arms += [
+            Arm(
+                f"model-rollouts-seed{seed}",
+                "merged",
+                {**rollouts, "seed": seed},
+                f"{label}, stage-one seed {seed}",
+            )
+            for seed in config.artifact_seeds
+        ]
     if config.union:
         arms.append(Arm("mixing-union", "merged", None, "HIPODE, uniform over the union", "union"))
     names = [arm.name for arm in arms]
@@ -252,6 +268,7 @@ def prepare_artifact(
         "candidates": "model",
         "penalty": GeneratorConfig.__dataclass_fields__["penalty"].default,
         "seed": config.artifact_seed,
+        "method": "hipode",
     }
     overrides = {"seed": config.artifact_seed, **(arm.augment or {})}
     out: Path | None
