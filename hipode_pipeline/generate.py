@@ -274,6 +274,30 @@ def generate(
 
 
 def _as_result(kept, source: Transitions, normalizer, terminal, counts) -> GenerationResult:
+    return kept_result(
+        kept,
+        source,
+        normalizer,
+        terminal,
+        counts,
+        float_names=("value", "dynamics_reward"),
+        int_names=("candidate_index", "batch_index", "error_rank"),
+    )
+
+
+def kept_result(
+    kept: dict[str, torch.Tensor],
+    source: Transitions,
+    normalizer,
+    terminal,
+    counts: dict[str, int],
+    *,
+    float_names: tuple[str, ...],
+    int_names: tuple[str, ...],
+) -> GenerationResult:
+    """Kept rows (z-scored next states, raw actions and rewards, their check's `errors` and the
+    source rows they came from) as raw transitions with the env's terminals and diagnostics
+    (`float_names` as float32, `int_names` as int64)."""
     next_norm = kept["next_norm"].numpy().astype(np.float32)
     next_raw = normalizer.denormalize(next_norm).astype(np.float32)
     source_index = kept["source_index"].numpy().astype(np.int64)
@@ -287,12 +311,9 @@ def _as_result(kept, source: Transitions, normalizer, terminal, counts) -> Gener
     )
     diagnostics = {
         "dynamics_error": kept["errors"].numpy().astype(np.float32),
-        "value": kept["value"].numpy().astype(np.float32),
         "source_index": source_index,
-        "candidate_index": kept["candidate_index"].numpy().astype(np.int64),
-        "dynamics_reward": kept["dynamics_reward"].numpy().astype(np.float32),
-        "batch_index": kept["batch_index"].numpy().astype(np.int64),
-        "error_rank": kept["error_rank"].numpy().astype(np.int64),
+        **{name: kept[name].numpy().astype(np.float32) for name in float_names},
+        **{name: kept[name].numpy().astype(np.int64) for name in int_names},
     }
     return GenerationResult(transitions, diagnostics, counts, next_norm)
 

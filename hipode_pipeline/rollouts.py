@@ -32,6 +32,7 @@ from hipode_pipeline.generate import (
     MAX_ETA,
     GenerationResult,
     SourceOrder,
+    kept_result,
     synthetic_count,
 )
 from hipode_pipeline.models import training
@@ -282,22 +283,12 @@ def model_rollouts(
     kept = {name: torch.cat([p[name] for p in parts]) for name in parts[0]}
     counts["candidates"] = counts["source_states_drawn"] - counts["nonfinite_dropped"]
     counts["kept"] = target
-    next_norm = kept["next_norm"].numpy().astype(np.float32)
-    next_raw = normalizer.denormalize(next_norm).astype(np.float32)
-    source_index = kept["source_index"].numpy().astype(np.int64)
-    transitions = Transitions(
-        observations=source.observations[source_index],
-        actions=kept["actions"].numpy().astype(np.float32),
-        rewards=kept["rewards"].numpy().astype(np.float32),
-        next_observations=next_raw,
-        terminals=terminal(next_raw),
-        timeouts=np.zeros(len(source_index), dtype=np.bool_),
+    return kept_result(
+        kept,
+        source,
+        normalizer,
+        terminal,
+        counts,
+        float_names=("value", "dynamics_reward"),
+        int_names=("batch_index",),
     )
-    diagnostics = {
-        "dynamics_error": kept["errors"].numpy().astype(np.float32),
-        "value": kept["value"].numpy().astype(np.float32),
-        "source_index": source_index,
-        "dynamics_reward": kept["dynamics_reward"].numpy().astype(np.float32),
-        "batch_index": kept["batch_index"].numpy().astype(np.int64),
-    }
-    return GenerationResult(transitions, diagnostics, counts, next_norm)
