@@ -40,7 +40,7 @@ from hipode_pipeline.generate import (
     GenerationResult,
     generate,
     novelty,
-    synthetic_count,
+    synthetic_rows,
 )
 from hipode_pipeline.models.generators import GeneratorConfig, Generators, train_generators
 from hipode_pipeline.overrides import check_fields
@@ -387,8 +387,7 @@ def run_augment(
             **statistics,
             "generators_cached": all(
                 r.get("cached", False)
-                for r in [*generators.training_report.values(), behaviour_record or {}]
-                if r
+                for r in [*generators.training_report.values(), *filter(None, [behaviour_record])]
             ),
             "device": str(generators.device),
             "profile": profile,
@@ -423,22 +422,24 @@ def run_augment(
         return summary
 
 
+# HIPODE's proposal and selection settings, unset: they have no meaning for one rollout per state
+HIPODE_ONLY_UNSET = {
+    "lam": None,
+    "n": None,
+    "selection": "batch",
+    "candidates": "model",
+    "uncertainty_check": False,
+    "project_next_state": False,
+}
+
+
 def check_method(method: str, **given: Any) -> None:
     """`method` is known, and the plain rollouts get none of HIPODE's selection settings."""
     if method not in METHODS:
         raise SettingError(f"--method: expected one of {METHODS}, found {method!r}")
     if method == "hipode":
         return
-    # a setting of HIPODE's proposal or selection has no meaning for one rollout per state
-    unset = {
-        "lam": None,
-        "n": None,
-        "selection": "batch",
-        "candidates": "model",
-        "uncertainty_check": False,
-        "project_next_state": False,
-    }
-    misplaced = [name for name, value in given.items() if value != unset[name]]
+    misplaced = [name for name, value in given.items() if value != HIPODE_ONLY_UNSET[name]]
     if misplaced:
         flags = ", ".join("--" + name.replace("_", "-") for name in misplaced)
         raise SettingError(
@@ -451,17 +452,6 @@ def check_seed(seed: int) -> None:
     """Seeds must fit every generator they reach (numpy and torch take 63 bits)."""
     if not 0 <= seed <= SEED_MAX:
         raise SettingError(f"--seed: expected an integer in [0, {SEED_MAX}], found {seed}")
-
-
-def synthetic_rows(eta: float, n_source: int) -> int:
-    """round(eta * N), refused before any work when it keeps nothing."""
-    target = synthetic_count(eta, n_source)
-    if target < 1:
-        raise SettingError(
-            f"--eta {eta}: keeps no transition of the source's {n_source}; "
-            f"expected eta >= {0.5 / n_source:.2g}"
-        )
-    return target
 
 
 def _table_text(row: dict[str, Any]) -> str:

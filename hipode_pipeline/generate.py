@@ -84,6 +84,17 @@ def synthetic_count(eta: float, n_source: int) -> int:
     return int(math.floor(eta * n_source + 0.5))
 
 
+def synthetic_rows(eta: float, n_source: int) -> int:
+    """round(eta * N), refused before any work when it keeps nothing."""
+    target = synthetic_count(eta, n_source)
+    if target < 1:
+        raise SettingError(
+            f"--eta {eta}: keeps no transition of the source's {n_source}; "
+            f"expected eta >= {0.5 / n_source:.2g}"
+        )
+    return target
+
+
 class SourceOrder:
     """The seeded order in which source states are drawn: a fresh permutation per pass, so no
     state repeats within a pass, and passes follow each other as long as generation needs."""
@@ -188,12 +199,7 @@ def generate(
     normalizer = generators.normalizer
     # fail before any work when the env has no known rule or the layout does not match it
     terminal = termination_rule(env_id, source.obs_dim, origin=f"source (env {env_id})")
-    target = synthetic_count(config.eta, len(source))
-    if target < 1:
-        raise SettingError(
-            f"--eta {config.eta}: keeps no transition of the source's {len(source)}; "
-            f"expected eta >= {0.5 / len(source):.2g}"
-        )
+    target = synthetic_rows(config.eta, len(source))
     source_norm = normalizer.normalize(torch.as_tensor(source.observations, device=device))
     box = (
         (source_norm.min(0).values, source_norm.max(0).values)

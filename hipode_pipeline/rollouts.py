@@ -33,7 +33,7 @@ from hipode_pipeline.generate import (
     GenerationResult,
     SourceOrder,
     kept_result,
-    synthetic_count,
+    synthetic_rows,
 )
 from hipode_pipeline.models import training
 from hipode_pipeline.models.cvae import CVAE
@@ -210,12 +210,7 @@ def model_rollouts(
     device = generators.device
     normalizer = generators.normalizer
     terminal = termination_rule(env_id, source.obs_dim, origin=f"source (env {env_id})")
-    target = synthetic_count(config.eta, len(source))
-    if target < 1:
-        raise SettingError(
-            f"--eta {config.eta}: keeps no transition of the source's {len(source)}; "
-            f"expected eta >= {0.5 / len(source):.2g}"
-        )
+    target = synthetic_rows(config.eta, len(source))
     source_norm = normalizer.normalize(torch.as_tensor(source.observations, device=device))
     order = SourceOrder(len(source), seed)
     sampling = torch.Generator(device=device).manual_seed(derive_seed(seed, "rollouts"))

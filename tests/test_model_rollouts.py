@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from hipode_pipeline.augment import check_method
+from hipode_pipeline.augment import HIPODE_ONLY_UNSET, check_method
 from hipode_pipeline.contract import ArtifactSettings
 from hipode_pipeline.data.normalizer import StateNormalizer
 from hipode_pipeline.data.transitions import Transitions
@@ -144,14 +144,7 @@ def test_rate_out_of_range_is_refused():
     ],
 )
 def test_hipode_settings_are_refused_for_rollouts(given, flag):
-    unset = {
-        "lam": None,
-        "n": None,
-        "selection": "batch",
-        "candidates": "model",
-        "uncertainty_check": False,
-        "project_next_state": False,
-    }
+    unset = HIPODE_ONLY_UNSET
     check_method("hipode", **{**unset, **given})  # HIPODE takes them
     check_method("model-rollouts", **unset)
     with pytest.raises(SettingError, match=flag):
