@@ -202,6 +202,17 @@ def _say_waiting(fd: int, path: Path) -> None:
     console.err.print(console.plain(f"waiting for another `{command}` writing {path} (pid {pid})…"))
 
 
+def display_path(path: str | Path | None) -> str | None:
+    """A path as records show it: relative to the working directory when inside it, so run
+    records and reports written in a checkout name no folder of the machine."""
+    if path is None:
+        return None
+    if not Path(path).is_absolute():
+        return str(path)  # already relative (or a dataset id such as local/hopper/...)
+    resolved, here = Path(path).resolve(), Path.cwd().resolve()
+    return str(resolved.relative_to(here)) if resolved.is_relative_to(here) else str(path)
+
+
 def path_kind(path: str | Path) -> str:
     """What is at `path`, in words, for an error message. Only stat is called: a FIFO is never
     opened, so it cannot block."""

@@ -6,8 +6,16 @@ evaluations, a learning-speed measure). Across the group's seeds: the interquart
 and the mean, each with a stratified bootstrap 95 % confidence interval (rliable; with one task
 per group the bootstrap resamples seeds). Against a baseline arm (`--compare data=source`): the
 probability of improvement P(X > Y) with its bootstrap CI (rliable) and the paired difference of
-the per-seed measure, over the seeds both arms ran, with a percentile bootstrap CI. Learning
-curves: the mean score over seeds per evaluation step, with a bootstrap 95 % CI of that mean.
+the per-seed measure, over the seeds both arms ran, with a bootstrap CI. Learning curves: the
+mean score over seeds per evaluation step, with a bootstrap 95 % CI of that mean.
+
+A run is one replicate: (source dataset, stage-one seed of its artifact, training seed). Arms
+whose artifacts were built with several stage-one seeds pool them (group by `augmentation`:
+none, hipode or model-rollouts, instead of by artifact); their paired differences pair each run
+with the baseline's run of the same source and training seed, and the bootstrap resamples
+training seeds and stage-one seeds independently (crossed), so the interval covers both sources
+of variance. With `task` among the keys, comparisons are also aggregated over tasks: the mean
+over tasks of each task's mean paired difference, bootstrapped within each task (stratified).
 
 Run folders are read only (`scores.json`, a finished run's record); scores are D4RL-normalized
 on whatever data the runs used (here: Gymnasium v5 datasets built locally, scored with D4RL's
@@ -52,6 +60,16 @@ class Run:
     @property
     def seed(self) -> int:
         return int(self.keys["seed"])
+
+    @property
+    def artifact_seed(self) -> Any:
+        """The stage-one seed of the run's artifact; None for a run on the source alone."""
+        return None if self.keys.get("data") == "source" else self.keys.get("artifact_seed")
+
+    @property
+    def replicate(self) -> tuple[Any, Any, int]:
+        """What tells the runs of one arm apart: source, stage-one seed, training seed."""
+        return (self.keys.get("source_sha256"), self.artifact_seed, self.seed)
 
     def measure(self, name: str, k: int) -> float:
         values = np.asarray(self.scores, dtype=np.float64)
@@ -124,7 +142,20 @@ def read_run(folder: Path) -> Run:
         **{k: v for k, v in identity.items() if isinstance(v, str | int | float | bool)},
         **{k: v for k, v in data.items() if isinstance(v, str | int | float | bool)},
     }
+    keys["augmentation"] = augmentation(keys.get("data"), identity)
     return Run(folder, keys, steps, scores)
+
+
+def augmentation(data: Any, identity: dict[str, Any]) -> str:
+    """Where a run's synthetic rows came from: none (the source alone), else the artifact's
+    method (hipode, model-rollouts); artifacts written before methods were recorded are HIPODE's,
+    and an artifact with no hyper-parameters at all is unknown."""
+    if data == "source":
+        return "none"
+    hyper = identity.get("artifact_hyper_parameters")
+    if not isinstance(hyper, dict):
+        return "unknown"
+    return str(hyper.get("method", "hipode"))
 
 
 def parse_by(text: str) -> tuple[str, ...]:
@@ -156,16 +187,17 @@ def group_runs(runs: list[Run], by: tuple[str, ...]) -> list[Group]:
             )
         key = {k: run.keys[k] for k in by}
         group = groups.setdefault(tuple(key.values()), Group(key))
-        if run.seed in {r.seed for r in group.runs}:
+        if run.replicate in {r.replicate for r in group.runs}:
             raise DataFormatError(
                 run.path,
                 "seed",
-                f"one run per seed in group {group.label} (another folder has seed {run.seed}); "
+                f"one run per seed (per source and stage-one seed) in group {group.label} "
+                f"(another folder has seed {run.seed}, stage-one seed {run.artifact_seed}); "
                 "group by more keys (--by) or pass fewer folders",
             )
         group.runs.append(run)
     for group in groups.values():
-        group.runs.sort(key=lambda r: r.seed)
+        group.runs.sort(key=lambda r: (r.seed, str(r.artifact_seed), str(r.replicate[0])))
     return list(groups.values())
 
 
@@ -218,20 +250,95 @@ def improvement(x: np.ndarray, y: np.ndarray, reps: int, seed: int) -> dict[str,
     return {"probability": float(point), "ci": [float(interval[0, 0]), float(interval[1, 0])]}
 
 
-def paired_difference(x: dict[int, float], y: dict[int, float], reps: int, seed: int):
-    """Mean of x[s] - y[s] over the seeds both have, with a percentile bootstrap 95 % CI."""
-    shared = sorted(set(x) & set(y))
-    if not shared:
-        return None
-    diffs = np.array([x[s] - y[s] for s in shared])
+def paired_cells(mine: list[Run], theirs: list[Run], name: str, k: int) -> dict[tuple, float]:
+    """arm - baseline per replicate of the arm: each run minus the baseline's run of the same
+    source and training seed (and the same stage-one seed where the baseline has them too)."""
+    base = {r.replicate: r.measure(name, k) for r in theirs}
+    cells = {}
+    for run in mine:
+        source, artifact_seed, seed = run.replicate
+        for key in ((source, artifact_seed, seed), (source, None, seed)):
+            if key in base:
+                cells[run.replicate] = run.measure(name, k) - base[key]
+                break
+    return cells
+
+
+def crossed_bootstrap(cells: dict[tuple, float], reps: int, seed: int) -> np.ndarray:
+    """`reps` bootstrap means of `cells` ((source, stage-one seed, training seed) -> value):
+    within each source, training seeds and stage-one seeds are resampled independently and the
+    cells of the resampled grid averaged; sources are strata, kept as they are."""
     rng = np.random.default_rng(seed)
-    means = diffs[rng.integers(len(diffs), size=(reps, len(diffs)))].mean(axis=1)
+    total, count = np.zeros(reps), np.zeros(reps)
+    for source in sorted({key[0] for key in cells}, key=str):
+        keys = [key for key in cells if key[0] == source]
+        artifact_seeds = sorted({key[1] for key in keys}, key=str)
+        seeds = sorted({key[2] for key in keys})
+        grid = np.full((len(artifact_seeds), len(seeds)), np.nan)
+        for key in keys:
+            grid[artifact_seeds.index(key[1]), seeds.index(key[2])] = cells[key]
+        rows = rng.integers(len(artifact_seeds), size=(reps, len(artifact_seeds)))
+        columns = rng.integers(len(seeds), size=(reps, len(seeds)))
+        picked = grid[rows[:, :, None], columns[:, None, :]]  # reps x stage-one x training
+        total += np.nansum(picked, axis=(1, 2))
+        count += np.sum(~np.isnan(picked), axis=(1, 2))
+    # a resample can miss every filled cell of an incomplete grid; it then says nothing
+    return total[count > 0] / count[count > 0]
+
+
+def paired_difference(cells: dict[tuple, float], reps: int, seed: int) -> dict[str, Any] | None:
+    """Mean over the paired replicates of arm - baseline, with a crossed bootstrap 95 % CI."""
+    if not cells:
+        return None
+    diffs = np.array(list(cells.values()))
+    means = crossed_bootstrap(cells, reps, seed)
     return {
         "mean": float(diffs.mean()),
         "ci": [float(np.quantile(means, 0.025)), float(np.quantile(means, 0.975))],
-        "seeds": shared,
+        "seeds": sorted({key[2] for key in cells}),
+        "artifact_seeds": sorted({key[1] for key in cells if key[1] is not None}),
+        "pairs": len(cells),
         "sem": float(diffs.std(ddof=1) / np.sqrt(len(diffs))) if len(diffs) > 1 else None,
+        "_means": means,  # the bootstrap means, for the aggregate over tasks; not written
     }
+
+
+def aggregate_over_tasks(comparisons: list[dict[str, Any]], by: tuple[str, ...]) -> list[dict]:
+    """Per arm key without the task: the mean over tasks of each task's mean paired difference,
+    with a 95 % CI from the tasks' bootstraps combined resample by resample (stratified by task)."""
+    if "task" not in by:
+        return []
+    merged: dict[tuple, list[dict[str, Any]]] = {}
+    for entry in comparisons:
+        key = tuple((k, v) for k, v in entry["key"].items() if k != "task")
+        merged.setdefault(key, []).append(entry)
+    rows = []
+    for key, entries in merged.items():
+        row: dict[str, Any] = {
+            "arm": " ".join(f"{k}={v}" for k, v in key),
+            "tasks": [entry["key"]["task"] for entry in entries],
+            "measures": {},
+        }
+        for name in MEASURES:
+            diffs = [entry["measures"][name]["paired_difference"] for entry in entries]
+            if any(d is None for d in diffs):
+                continue
+            size = min(len(d["_means"]) for d in diffs)
+            means = np.mean([d["_means"][:size] for d in diffs], axis=0)
+            row["measures"][name] = {
+                "mean": float(np.mean([d["mean"] for d in diffs])),
+                "ci": [float(np.quantile(means, 0.025)), float(np.quantile(means, 0.975))],
+                "pairs": int(sum(d["pairs"] for d in diffs)),
+            }
+        rows.append(row)
+    return rows
+
+
+def _without_samples(entries: list[dict[str, Any]]) -> None:
+    for entry in entries:
+        for measure in entry["measures"].values():
+            if measure.get("paired_difference"):
+                measure["paired_difference"].pop("_means", None)
 
 
 def build_report(
@@ -251,7 +358,16 @@ def build_report(
         raise SettingError(f"--compare {compare[0]}=…: expected one of the --by keys {list(by)}")
     rows = []
     for group in groups:
-        row: dict[str, Any] = {**group.key, "seeds": [r.seed for r in group.runs], "measures": {}}
+        row: dict[str, Any] = {
+            **group.key,
+            "seeds": sorted({r.seed for r in group.runs}),
+            "artifact_seeds": sorted(
+                {r.artifact_seed for r in group.runs if r.artifact_seed is not None}, key=str
+            ),
+            "sources": len({r.replicate[0] for r in group.runs}),
+            "n_runs": len(group.runs),
+            "measures": {},
+        }
         for name in MEASURES:
             values = np.array([r.measure(name, k) for r in group.runs])
             row["measures"][name] = interval_estimates(values, reps, seed)
@@ -274,17 +390,23 @@ def build_report(
             base = baselines.get(tuple((k2, group.key[k2]) for k2 in by if k2 != key))
             if base is None:
                 continue
-            entry: dict[str, Any] = {"arm": group.label, "baseline": base.label, "measures": {}}
+            entry: dict[str, Any] = {
+                "arm": group.label,
+                "baseline": base.label,
+                "key": group.key,
+                "measures": {},
+            }
             for name in MEASURES:
-                mine = {r.seed: r.measure(name, k) for r in group.runs}
-                theirs = {r.seed: r.measure(name, k) for r in base.runs}
+                mine = np.array([r.measure(name, k) for r in group.runs])
+                theirs = np.array([r.measure(name, k) for r in base.runs])
+                cells = paired_cells(group.runs, base.runs, name, k)
                 entry["measures"][name] = {
-                    "probability_of_improvement": improvement(
-                        np.array(list(mine.values())), np.array(list(theirs.values())), reps, seed
-                    ),
-                    "paired_difference": paired_difference(mine, theirs, reps, seed),
+                    "probability_of_improvement": improvement(mine, theirs, reps, seed),
+                    "paired_difference": paired_difference(cells, reps, seed),
                 }
             comparisons.append(entry)
+    across_tasks = aggregate_over_tasks(comparisons, by)
+    _without_samples(comparisons)
     return {
         "by": list(by),
         "compare": None if compare is None else f"{compare[0]}={compare[1]}",
@@ -292,17 +414,23 @@ def build_report(
         "bootstrap": {"reps": reps, "seed": seed, "confidence": 0.95},
         "definitions": {
             **{name: text.format(k=k) for name, text in MEASURE_TEXT.items()},
-            "iqm": "interquartile mean over seeds (rliable aggregate_iqm)",
-            "ci": "stratified bootstrap 95 % CI over seeds (rliable get_interval_estimates)",
+            "run": "one replicate: (source dataset, stage-one seed of the artifact, training "
+            "seed); an arm pooling several stage-one seeds has one run per pair of seeds",
+            "iqm": "interquartile mean over runs (rliable aggregate_iqm)",
+            "ci": "stratified bootstrap 95 % CI over runs (rliable get_interval_estimates)",
             "probability_of_improvement": "P(a seed of the arm scores above a seed of the "
             "baseline), rliable, with its bootstrap CI",
-            "paired_difference": "mean over shared seeds of arm - baseline, percentile "
-            "bootstrap 95 % CI",
+            "paired_difference": "mean over the arm's runs of run - the baseline's run of the "
+            "same source and training seed; 95 % CI from a crossed bootstrap (training seeds "
+            "and stage-one seeds resampled independently, sources as strata)",
+            "across_tasks": "mean over tasks of each task's mean paired difference; 95 % CI "
+            "from the tasks' bootstraps averaged resample by resample (stratified by task)",
             "scores": "D4RL-normalized returns on the runs' data (locally built Gymnasium v5 "
             "datasets scored with D4RL's reference returns, unless the runs say otherwise)",
         },
         "groups": rows,
         "comparisons": comparisons,
+        "across_tasks": across_tasks,
     }
 
 
@@ -330,13 +458,13 @@ def _interval(m: dict[str, Any], name: str) -> str:
 def table_rows(report: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
     """The human table: per group, IQM and mean [95 % CI] of each measure, over n seeds."""
     by = report["by"]
-    columns = [*by, "seeds"]
+    columns = [*by, "runs (training × stage-one seeds)"]
     for name in MEASURES:
         text = report["definitions"][name]
         columns += [f"{text}: IQM [95% CI]", f"{text}: mean [95% CI]"]
     rows = []
     for group in report["groups"]:
-        row = [str(group[k]) for k in by] + [str(len(group["seeds"]))]
+        row = [str(group[k]) for k in by] + [_replicates(group)]
         for name in MEASURES:
             m = group["measures"][name]
             row += [_interval(m, "iqm"), _interval(m, "mean")]
@@ -360,11 +488,34 @@ def comparison_rows(report: dict[str, Any]) -> tuple[list[str], list[list[str]]]
             row.append(
                 "-"
                 if d is None
-                else f"{d['mean']:+.1f} [{d['ci'][0]:+.1f}, {d['ci'][1]:+.1f}] "
-                f"({len(d['seeds'])} seeds)"
+                else f"{d['mean']:+.1f} [{d['ci'][0]:+.1f}, {d['ci'][1]:+.1f}] ({d['pairs']} pairs)"
             )
         rows.append(row)
     return columns, rows
+
+
+def across_task_rows(report: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
+    """The aggregate over tasks of each arm's paired difference."""
+    columns = ["arm", "tasks"]
+    columns += [f"{report['definitions'][name]}: mean diff [95% CI]" for name in MEASURES]
+    rows = []
+    for entry in report.get("across_tasks", []):
+        row = [entry["arm"], ", ".join(entry["tasks"])]
+        for name in MEASURES:
+            m = entry["measures"].get(name)
+            row.append(
+                "-" if m is None else f"{m['mean']:+.1f} [{m['ci'][0]:+.1f}, {m['ci'][1]:+.1f}]"
+            )
+        rows.append(row)
+    return columns, rows
+
+
+def _replicates(group: dict[str, Any]) -> str:
+    """How many runs a group holds and what they vary: training and stage-one seeds."""
+    text = f"{group['n_runs']} ({len(group['seeds'])}"
+    if group["artifact_seeds"]:
+        text += f" × {len(group['artifact_seeds'])}"
+    return text + ")"
 
 
 def markdown(report: dict[str, Any]) -> str:
@@ -374,13 +525,28 @@ def markdown(report: dict[str, Any]) -> str:
         "",
         f"Grouped by {', '.join(report['by'])}. Scores: {report['definitions']['scores']}. "
         f"Intervals: {report['definitions']['ci']} ({report['bootstrap']['reps']} resamples, "
-        f"seed {report['bootstrap']['seed']}); they are over seeds, not evaluation episodes.",
+        f"seed {report['bootstrap']['seed']}); they are over seeds, not evaluation episodes. "
+        f"A run: {report['definitions']['run']}.",
         "",
         _md_table(columns, rows),
     ]
     if report["comparisons"]:
         columns, rows = comparison_rows(report)
-        lines += ["", f"Against {report['compare']}:", "", _md_table(columns, rows)]
+        lines += [
+            "",
+            f"Against {report['compare']} (paired difference: "
+            f"{report['definitions']['paired_difference']}):",
+            "",
+            _md_table(columns, rows),
+        ]
+    if report.get("across_tasks"):
+        columns, rows = across_task_rows(report)
+        lines += [
+            "",
+            f"Across tasks ({report['definitions']['across_tasks']}):",
+            "",
+            _md_table(columns, rows),
+        ]
     return "\n".join(lines) + "\n"
 
 
@@ -444,12 +610,12 @@ def plot_curves(report: dict[str, Any], path: Path) -> None:
     figure, axes = plt.subplots(figsize=(7.2, 4.8), dpi=120)
     for index, group in enumerate(report["groups"]):
         curve, color = group["curve"], f"C{index % 10}"
-        label = " ".join(str(group[k]) for k in report["by"]) + f" ({len(group['seeds'])} seeds)"
+        label = " ".join(str(group[k]) for k in report["by"]) + f" ({group['n_runs']} runs)"
         axes.plot(curve["steps"], curve["mean"], color=color, label=label)
         axes.fill_between(curve["steps"], curve["ci_low"], curve["ci_high"], color=color, alpha=0.2)
     axes.set_xlabel("updates")
     axes.set_ylabel("D4RL-normalized score")
-    axes.set_title("mean over seeds; band: bootstrap 95% CI of the mean over seeds")
+    axes.set_title("mean over runs; band: bootstrap 95% CI of the mean over runs")
     axes.legend(fontsize=7)
     save_figure_atomic(figure, path)
 

@@ -29,7 +29,7 @@ from hipode_pipeline.data.load import load_source
 from hipode_pipeline.device import select_device
 from hipode_pipeline.errors import HipodeError, SettingError, TrainingInterrupted
 from hipode_pipeline.evaluate import EvalResult, check_data_fits_env, evaluate_policies
-from hipode_pipeline.files import output_lock, write_json_atomic
+from hipode_pipeline.files import display_path, output_lock, write_json_atomic
 from hipode_pipeline.generate import MAX_ETA
 from hipode_pipeline.learners import learner_class
 from hipode_pipeline.learners.base import Learner, fast_bf16
@@ -406,11 +406,11 @@ def train_seeds(
             if task_obj.max_episode_steps
             else {}
         ),
-        "source_id": merged.source["id"],
+        "source_id": display_path(merged.source["id"]),
         "source_sha256": merged.source["sha256"],
         "n_real": len(merged.real),
         "n_synthetic": 0 if merged.synthetic is None else len(merged.synthetic),
-        "artifact_path": None if merged.artifact_path is None else str(merged.artifact_path),
+        "artifact_path": display_path(merged.artifact_path),
         "artifact_checksum": manifest.get("checksum"),
         "artifact_choice": run_data.artifact_choice,
         "artifact_eta": run_data.artifact_eta,
@@ -578,7 +578,7 @@ def _train_group(
         results.append(
             finish_run(
                 TrainResult(
-                    run_dir=str(seed_run.run_dir),
+                    run_dir=display_path(seed_run.run_dir),
                     task=c["task"],
                     learner=c["learner"],
                     data=c["data"],

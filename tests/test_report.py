@@ -14,13 +14,26 @@ from typer.testing import CliRunner
 from hipode_pipeline.cli import app
 from hipode_pipeline.errors import DataFormatError, SettingError
 from hipode_pipeline.report import build_report, find_runs
+from hipode_pipeline.report import markdown as report_markdown
 
 pytest.importorskip("rliable", reason="the report extra (rliable) is not installed")
 
 
-def write_run(folder: Path, *, data: str, seed: int, scores: list[float], task="hopper-m-r"):
+def write_run(
+    folder: Path,
+    *,
+    data: str,
+    seed: int,
+    scores: list[float],
+    task="hopper-m-r",
+    artifact_seed=0,
+    method: str | None = None,
+):
     folder.mkdir(parents=True)
     evaluations = [{"step": 100 * (i + 1), "score_mean": s} for i, s in enumerate(scores)]
+    identity = {"mixing": "mixed", "artifact_seed": artifact_seed, "source_sha256": task}
+    if method is not None:
+        identity["artifact_hyper_parameters"] = {"method": method, "eta": 0.5}
     (folder / "scores.json").write_text(
         json.dumps(
             {
@@ -30,7 +43,7 @@ def write_run(folder: Path, *, data: str, seed: int, scores: list[float], task="
                 "seed": seed,
                 "eta": 0.5,
                 "evaluations": evaluations,
-                "data_identity": {"mixing": "mixed", "artifact_seed": 0},
+                "data_identity": identity,
             }
         )
     )
@@ -93,6 +106,91 @@ def test_same_seed_twice_in_a_group_is_refused(tmp_path, two_arms):
         build_report(find_runs([two_arms]))
 
 
+POOLED = ("task", "learner", "augmentation")
+
+
+@pytest.fixture
+def pooled_arms(tmp_path):
+    """Three training seeds of the source alone, and of HIPODE and model rollouts with artifacts
+    of two stage-one seeds: HIPODE's artifact seed 0 adds exactly 10 at every training seed, its
+    seed 1 takes 10 away; the rollouts add 2 at both."""
+    runs = tmp_path / "runs"
+    for seed, final in enumerate([30.0, 40.0, 50.0]):
+        write_run(runs / "eta0" / f"s{seed}", data="source", seed=seed, scores=[final])
+        for artifact_seed, hipode_gain in ((0, 10.0), (1, -10.0)):
+            folder = runs / f"hipode-a{artifact_seed}" / f"s{seed}"
+            write_run(
+                folder,
+                data="merged",
+                seed=seed,
+                scores=[final + hipode_gain],
+                artifact_seed=artifact_seed,
+                method="hipode",
+            )
+            write_run(
+                runs / f"rollouts-a{artifact_seed}" / f"s{seed}",
+                data="merged",
+                seed=seed,
+                scores=[final + 2.0],
+                artifact_seed=artifact_seed,
+                method="model-rollouts",
+            )
+    return runs
+
+
+def test_pooled_stage_one_seeds_pair_with_the_baseline_and_resample_both_seeds(pooled_arms):
+    runs = find_runs([pooled_arms])
+    report = build_report(runs, by=POOLED, compare=("augmentation", "none"), reps=4000)
+    groups = {g["augmentation"]: g for g in report["groups"]}
+    assert set(groups) == {"none", "hipode", "model-rollouts"}
+    assert groups["hipode"]["n_runs"] == 6 and groups["hipode"]["artifact_seeds"] == [0, 1]
+    assert groups["hipode"]["seeds"] == [0, 1, 2] and groups["none"]["artifact_seeds"] == []
+    entries = {e["key"]["augmentation"]: e["measures"]["last"] for e in report["comparisons"]}
+    hipode, rollouts = (
+        entries["hipode"]["paired_difference"],
+        entries["model-rollouts"]["paired_difference"],
+    )
+    assert hipode["pairs"] == 6 and hipode["artifact_seeds"] == [0, 1]
+    assert hipode["mean"] == pytest.approx(0.0)
+    # resampling the stage-one seeds draws both artifacts (0), seed 0 twice (+10) or seed 1
+    # twice (-10): the interval spans the artifacts' spread, which resampling the six runs as if
+    # independent would shrink
+    assert hipode["ci"] == pytest.approx([-10.0, 10.0])
+    assert rollouts["mean"] == pytest.approx(2.0) and rollouts["ci"] == pytest.approx([2.0, 2.0])
+    assert "_means" not in hipode  # the bootstrap samples stay out of report.json
+
+
+def test_comparisons_are_aggregated_over_tasks(tmp_path):
+    runs = tmp_path / "runs"
+    for task, gain in (("hopper-m-r", 5.0), ("walker2d-m-r", 15.0)):
+        for seed, final in enumerate([20.0, 30.0, 45.0]):
+            write_run(runs / task / f"s{seed}", data="source", seed=seed, scores=[final], task=task)
+            write_run(
+                runs / task / f"h{seed}",
+                data="merged",
+                seed=seed,
+                scores=[final + gain + seed],  # per-seed noise: 0, 1, 2
+                task=task,
+                method="hipode",
+            )
+    report = build_report(find_runs([runs]), by=POOLED, compare=("augmentation", "none"), reps=4000)
+    (entry,) = report["across_tasks"]
+    assert entry["arm"] == "learner=td3bc augmentation=hipode"
+    assert entry["tasks"] == ["hopper-m-r", "walker2d-m-r"]
+    last = entry["measures"]["last"]
+    assert last["mean"] == pytest.approx((5 + 15) / 2 + 1) and last["pairs"] == 6
+    # every resample averages the two tasks' resampled seed noise (each within 0..2)
+    assert 10.0 <= last["ci"][0] < 11.0 < last["ci"][1] <= 12.0
+    markdown_text = report_markdown(report)
+    assert "Across tasks" in markdown_text and "+11.0" in markdown_text
+
+
+def test_runs_without_a_recorded_method_are_labelled(tmp_path, two_arms):
+    groups = {r.keys["data"]: r.keys["augmentation"] for r in find_runs([two_arms])}
+    # the fixture's merged runs carry no artifact hyper-parameters at all
+    assert groups == {"source": "none", "merged": "unknown"}
+
+
 def test_bad_inputs_are_named(tmp_path, two_arms):
     (tmp_path / "empty").mkdir()
     with pytest.raises(DataFormatError, match="scores.json"):
@@ -121,9 +219,11 @@ def test_cli_writes_every_format_and_refuses_to_overwrite(tmp_path, two_arms):
     assert again.exit_code == 2 and "--force" in again.output
 
 
-def test_report_on_real_training_runs(tmp_path, tiny_pair):
-    """Two seeds of two arms trained for a few updates, then reported."""
+def test_report_on_real_training_runs(tmp_path, tiny_pair, monkeypatch):
+    """Two seeds of two arms trained for a few updates, then reported; the run records name
+    their folders and artifact relative to the working directory (run folders get committed)."""
     source, artifact = tiny_pair
+    monkeypatch.chdir(tmp_path)
     runner = CliRunner()
     for data in ("source", "merged"):
         result = runner.invoke(
@@ -155,3 +255,10 @@ def test_report_on_real_training_runs(tmp_path, tiny_pair):
     assert all(g["seeds"] == [0, 1] for g in report["groups"])
     assert report["comparisons"][0]["measures"]["last"]["paired_difference"]["seeds"] == [0, 1]
     assert (out / "curves.png").is_file()
+    records = sorted((tmp_path / "runs").rglob("*.json"))
+    assert len(records) == 8  # config.json and scores.json of four runs
+    for record in records:
+        assert str(tmp_path) not in record.read_text(), record
+    merged = json.loads(next((tmp_path / "runs").rglob("*merged*/scores.json")).read_text())
+    assert merged["data_identity"]["artifact_path"] == "art.hdf5"
+    assert merged["run_dir"].startswith("runs/hopper-m-r/")

@@ -12,6 +12,7 @@ from hipode_pipeline.commands.common import ForceFlag, JsonFlag, output_folder, 
 from hipode_pipeline.errors import OverwriteError
 from hipode_pipeline.report import (
     OUTPUTS,
+    across_task_rows,
     build_report,
     comparison_rows,
     find_runs,
@@ -71,9 +72,12 @@ def report_command(
     if report["comparisons"]:
         columns, rows = comparison_rows(report)
         console.out.print(console.table(f"against {report['compare']}", columns, rows))
+    if report["across_tasks"]:
+        columns, rows = across_task_rows(report)
+        console.out.print(console.table("paired differences across tasks", columns, rows))
     console.err.print(
         console.plain(
-            "intervals are over seeds (bootstrap 95 % CI); wrote "
+            "intervals are over runs (training and stage-one seeds; bootstrap 95 % CI); wrote "
             + ", ".join(str(p) for p in paths.values())
         )
     )

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from hipode_pipeline import console
 from hipode_pipeline.errors import HipodeError, SettingError
-from hipode_pipeline.files import write_json_atomic, write_text_atomic
+from hipode_pipeline.files import display_path, write_json_atomic, write_text_atomic
 from hipode_pipeline.paths import use_datasets_root
 from hipode_pipeline.sweep.engines import read_finished, run_local, run_ray
 from hipode_pipeline.sweep.machine import LoadSampler
@@ -30,14 +30,6 @@ from hipode_pipeline.sweep.plan import (
     run_units,
 )
 from hipode_pipeline.sweep.report import QualityReport, curve_plot, markdown, summarize
-
-
-def display_path(path: str | Path | None) -> str | None:
-    """A path as the report shows it: relative to the working directory when inside it."""
-    if path is None:
-        return None
-    resolved, here = Path(path).resolve(), Path.cwd().resolve()
-    return str(resolved.relative_to(here)) if resolved.is_relative_to(here) else str(path)
 
 
 def results_dir(config: SweepConfig) -> Path:
