@@ -1,0 +1,125 @@
+"""The evidence campaign: does HIPODE help TD3+BC and IQL on the medium-replay tasks?
+
+One sweep per task and source (`hipode sweep`: arms eta0, hipode, hipode with other stage-one
+seeds, and plain model rollouts at every stage-one seed) into
+bench/evidence/runs/<task>-<first 8 hex of the source's sha256>/, then one pooled report over
+every committed run in bench/evidence/report/ (`hipode report --by task,learner,augmentation
+--compare augmentation=none`).
+
+The run folders' records (config.json, metrics.jsonl, scores.json) are committed; checkpoints
+and artifacts are not. Sources are collected on each machine and differ between CPUs, so runs
+are kept per source: a session whose rebuilt source matches continues that folder (a finished
+run is kept, an unfinished one restarts), one whose source differs starts a folder of its own,
+and the report pools sources as strata, each run paired with the baseline on its own source.
+
+    python bench/evidence.py sweep hopper-m-r --seeds 0-4              # trains / resumes
+    python bench/evidence.py sweep walker2d-m-r --learner iql --seeds 0-4
+    python bench/evidence.py sweep hopper-m-r --seeds 0-4 --report-only  # its quality.md
+    python bench/evidence.py report                                    # the pooled tables
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+# OpenMP reads its wait policy once, when torch loads: busy-waiting starves a shared machine
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+REPO = Path(__file__).resolve().parent.parent
+RUNS = Path("bench") / "evidence" / "runs"
+REPORT = Path("bench") / "evidence" / "report"
+# the budgets of the campaign on CPU, per learner (the issue: at least 200k updates for TD3+BC)
+CPU_STEPS = {"td3bc": 200_000, "iql": 200_000}
+EVAL_EVERY = 5000
+EVAL_EPISODES = 10
+ARTIFACT_SEEDS = "1"  # besides seed 0: the stage-one seeds of the artifact arms
+
+
+def source_folder(task_name: str) -> Path:
+    """bench/evidence/runs/<task>-<sha8> for the task's own source, collected if missing."""
+    from hipode_pipeline.paths import datasets_root
+    from hipode_pipeline.sweep.plan import ensure_source
+    from hipode_pipeline.tasks import get_task
+
+    _, info = ensure_source(get_task(task_name), None, datasets_root(), show_progress=True)
+    return RUNS / f"{task_name}-{info.sha256[:8]}"
+
+
+def sweep(args: argparse.Namespace) -> list[str]:
+    out = source_folder(args.task)
+    steps = args.steps or CPU_STEPS[args.learner]
+    return [
+        "sweep",
+        "--tasks",
+        args.task,
+        "--learners",
+        args.learner,
+        "--seeds",
+        args.seeds,
+        "--steps",
+        str(steps),
+        "--eval-every",
+        str(EVAL_EVERY),
+        "--eval-episodes",
+        str(EVAL_EPISODES),
+        "--model-rollouts",
+        "--artifact-seeds",
+        args.artifact_seeds,
+        "--workers",
+        str(args.workers),
+        "--seeds-per-process",
+        "1",
+        "--out",
+        str(out),
+        "--results",
+        str(out / "report" / args.learner),
+        "--note",
+        "Gymnasium v5 medium-replay data collected on this machine (not D4RL's files); "
+        f"{args.learner} {steps:,} updates on CPU",
+        *(["--report-only"] if args.report_only else []),
+    ]
+
+
+def report(args: argparse.Namespace) -> list[str]:
+    return [
+        "report",
+        str(RUNS),
+        "--by",
+        "task,learner,augmentation",
+        "--compare",
+        "augmentation=none",
+        "--out",
+        str(REPORT),
+        "--force",
+    ]
+
+
+def main_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    commands = parser.add_subparsers(dest="command", required=True)
+    run = commands.add_parser("sweep", help="Train or resume one task's arms and seeds.")
+    run.add_argument("task", help="e.g. hopper-m-r")
+    run.add_argument("--learner", default="td3bc", choices=sorted(CPU_STEPS))
+    run.add_argument("--seeds", default="0-4", help="Training seeds (0-4, 0,2,5).")
+    run.add_argument("--steps", type=int, default=None, help="Updates (default: the budget).")
+    run.add_argument("--artifact-seeds", default=ARTIFACT_SEEDS, help="Extra stage-one seeds.")
+    run.add_argument("--workers", type=int, default=2, help="Parallel training processes.")
+    run.add_argument("--report-only", action="store_true", help="Report the finished runs.")
+    commands.add_parser("report", help="The pooled report over every committed run.")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = main_parser().parse_args(argv)
+    os.chdir(REPO)  # records name paths relative to the checkout
+    sys.path.insert(0, str(REPO))
+    from hipode_pipeline.cli import app
+
+    app(sweep(args) if args.command == "sweep" else report(args))
+
+
+if __name__ == "__main__":
+    main()
