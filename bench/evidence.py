@@ -16,6 +16,7 @@ and the report pools sources as strata, each run paired with the baseline on its
     python bench/evidence.py sweep walker2d-m-r --learner iql --seeds 0-4
     python bench/evidence.py sweep hopper-m-r --seeds 0-4 --report-only  # its quality.md
     python bench/evidence.py report                                    # the pooled tables
+    python bench/evidence.py report --by-source                        # one row per source
 """
 
 from __future__ import annotations
@@ -84,15 +85,17 @@ def sweep(args: argparse.Namespace) -> list[str]:
 
 
 def report(args: argparse.Namespace) -> list[str]:
+    # per source: whether a finding holds on each dataset, not only pooled over them
+    by_source = args.by_source
     return [
         "report",
         str(RUNS),
         "--by",
-        "task,learner,augmentation",
+        "task,learner,augmentation" + (",source_sha256" if by_source else ""),
         "--compare",
         "augmentation=none",
         "--out",
-        str(REPORT),
+        str(REPORT / "by-source" if by_source else REPORT),
         "--force",
     ]
 
@@ -108,7 +111,10 @@ def main_parser() -> argparse.ArgumentParser:
     run.add_argument("--artifact-seeds", default=ARTIFACT_SEEDS, help="Extra stage-one seeds.")
     run.add_argument("--workers", type=int, default=2, help="Parallel training processes.")
     run.add_argument("--report-only", action="store_true", help="Report the finished runs.")
-    commands.add_parser("report", help="The pooled report over every committed run.")
+    pooled = commands.add_parser("report", help="The pooled report over every committed run.")
+    pooled.add_argument(
+        "--by-source", action="store_true", help="One group per source (report/by-source/)."
+    )
     return parser
 
 

@@ -30,7 +30,15 @@ def test_sweep_runs_go_to_the_sources_folder(monkeypatch):
 
 
 def test_report_pools_by_augmentation():
-    command = evidence.report(SimpleNamespace())
+    command = evidence.report(evidence.main_parser().parse_args(["report"]))
     assert command[:2] == ["report", str(Path("bench/evidence/runs"))]
     assert command[command.index("--by") + 1] == "task,learner,augmentation"
     assert command[command.index("--compare") + 1] == "augmentation=none"
+    assert command[command.index("--out") + 1] == str(Path("bench/evidence/report"))
+
+
+def test_report_by_source_keeps_sources_apart():
+    args = evidence.main_parser().parse_args(["report", "--by-source"])
+    command = evidence.report(args)
+    assert command[command.index("--by") + 1] == "task,learner,augmentation,source_sha256"
+    assert command[command.index("--out") + 1] == str(Path("bench/evidence/report/by-source"))

@@ -298,3 +298,22 @@ def test_cli_summarizes_several_artifacts(tiny_artifact, tmp_path, monkeypatch):
     again = CliRunner().invoke(cli_app(), args)
     assert again.exit_code == 2 and "verify-summary" in again.stderr
     assert not (out / "copy.hdf5.verify.json").exists()
+
+
+def test_cli_refuses_two_artifacts_of_one_name_into_one_folder(tiny_artifact, tmp_path):
+    import shutil
+
+    root, summary = tiny_artifact
+    twins = []
+    for arm in ("hipode", "model-rollouts"):
+        (tmp_path / arm).mkdir()
+        twins.append(str(shutil.copyfile(summary.artifact, tmp_path / arm / "artifact.hdf5")))
+    out = tmp_path / "out"
+    args = ["verify", *twins, "--sample", "16", "--no-baseline", "--root", str(root)]
+    # even --force may not let the second report replace the first's: refused before any work
+    result = CliRunner().invoke(cli_app(), [*args, "--out-dir", str(out), "--force"])
+    assert result.exit_code == 2 and "both would write" in result.stderr
+    assert not out.exists() or not any(out.iterdir())
+    apart = CliRunner().invoke(cli_app(), args)  # each beside its own artifact
+    assert apart.exit_code == 0, apart.output
+    assert all(Path(t + ".verify.json").is_file() for t in twins)

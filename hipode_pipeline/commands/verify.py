@@ -16,12 +16,13 @@ from hipode_pipeline.commands.common import (
     output_folder,
     user_errors,
 )
-from hipode_pipeline.errors import OverwriteError
+from hipode_pipeline.errors import OverwriteError, SettingError
 from hipode_pipeline.verify import (
     DEFAULT_TOLERANCE,
     STAGE_COLUMNS,
     SUMMARY_COLUMNS,
     TABLE_COLUMNS,
+    output_paths,
     stage_rows,
     summary_paths,
     summary_row,
@@ -81,9 +82,19 @@ def verify(
     beside plain model rollouts, stage by stage; writes a JSON report and a novelty-vs-error PNG
     per artifact."""
     summary_dir = out_dir if out_dir is not None else Path(files[0]).parent
-    if len(files) > 1 and not force:
-        # checked before any artifact is verified: nothing is half-written
-        existing = [str(p) for p in summary_paths(summary_dir) if p.exists()]
+    # checked before any artifact is verified: nothing is half-written or written twice
+    reports_of: dict[Path, Path] = {}
+    for file in files:
+        for path in output_paths(Path(file), out_dir):
+            if path.resolve() in reports_of:
+                raise SettingError(
+                    f"{reports_of[path.resolve()]} and {file}: both would write {path} (the "
+                    "same file name in one --out-dir); verify them with separate --out-dir"
+                )
+            reports_of[path.resolve()] = Path(file)
+    if not force:
+        wanted = [*reports_of, *(summary_paths(summary_dir) if len(files) > 1 else ())]
+        existing = [str(p) for p in wanted if p.exists()]
         if existing:
             raise OverwriteError(f"{', '.join(existing)} already exist(s); pass --force")
     reports = [

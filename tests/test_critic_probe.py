@@ -1,0 +1,88 @@
+"""bench/critic_probe.py: a finished run's critic read back from its checkpoint and valued at
+the source's falls (the smaller twin Q, as TD3 bootstraps); a run of another source refused."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from hipode_pipeline.data.transitions import Transitions
+from hipode_pipeline.errors import DataFormatError
+from hipode_pipeline.learners import TD3BC
+from hipode_pipeline.run_folder import save_checkpoint
+
+BENCH = Path(__file__).resolve().parent.parent / "bench"
+sys.path.insert(0, str(BENCH))
+import critic_probe  # noqa: E402
+
+
+def source(n=60, seed=0) -> Transitions:
+    rng = np.random.default_rng(seed)
+    obs = rng.normal(size=(n, 11)).astype(np.float32)
+    terminals = np.zeros(n, bool)
+    terminals[[9, 29, 59]] = True
+    timeouts = np.zeros(n, bool)
+    timeouts[27] = True  # an episode cut by its time limit two rows before the next fall
+    return Transitions(
+        observations=obs,
+        actions=rng.uniform(-1, 1, (n, 3)).astype(np.float32),
+        rewards=rng.normal(2.0, 0.5, n).astype(np.float32),
+        next_observations=np.roll(obs, -1, 0),
+        terminals=terminals,
+        timeouts=timeouts,
+    )
+
+
+def finished_run(folder: Path, data: Transitions, sha: str, q_first: float, q_second: float):
+    """A run folder whose twin critics are constants (their output layers zeroed but the bias)."""
+    model = TD3BC(data.obs_dim, data.act_dim, seed=3)
+    model.fit_statistics(data)
+    with torch.no_grad():
+        model.critic.weights[-1].zero_()
+        model.critic.biases[-1][:, 0].fill_(q_first)
+        model.critic.biases[-1][:, 1].fill_(q_second)
+    folder.mkdir(parents=True)
+    save_checkpoint(folder / "checkpoint.pt", {"learner": model.seed_state(0)})
+    record = {"seed": 3, "source_id": "local/hopper/medium-replay-v0", "source_sha256": sha}
+    (folder / "config.json").write_text(json.dumps(record))
+    (folder / "scores.json").write_text("{}")
+
+
+def test_falls_are_valued_by_the_smaller_twin(tmp_path):
+    data = source()
+    finished_run(tmp_path / "hopper-m-r" / "hipode" / "td3bc-seed3", data, "ab" * 32, 7.0, 5.0)
+    (tmp_path / "hopper-m-r" / "eta0" / "td3bc-seed0").mkdir(parents=True)  # unfinished: skipped
+    folders = critic_probe.run_folders(tmp_path)
+    assert [f.parent.name for f in folders] == ["hipode"]
+    sources = {"local/hopper/medium-replay-v0": (data, SimpleNamespace(sha256="ab" * 32))}
+    row = critic_probe.probe(folders[0], sources)
+    falls = data.rewards[data.terminals]
+    assert (row["arm"], row["seed"], row["rows"], row["falls"]) == ("hipode", 3, 60, 3)
+    assert row["q_mean"] == pytest.approx(5.0) and row["q_falls"] == pytest.approx(5.0)
+    assert row["reward_falls"] == pytest.approx(float(falls.mean()))
+    assert row["fall_overestimate"] == pytest.approx(5.0 - float(falls.mean()))
+    # five rows before the falls at 9 and 59, one before 29 (row 27 ended its own episode)
+    expected = []
+    for fall, before in ((9, 5), (29, 1), (59, 5)):
+        for j in range(fall - 1, fall - 1 - before, -1):
+            expected.append(
+                sum(0.99 ** (m - j) * float(data.rewards[m]) for m in range(j, fall + 1))
+            )
+    assert row["rows_before_falls"] == len(expected) == 11
+    assert row["q_before_falls"] == pytest.approx(5.0)
+    assert row["return_to_fall"] == pytest.approx(np.mean(expected), rel=1e-5)
+    assert "| hipode | 3 |" in critic_probe.table([row])
+
+
+def test_a_run_of_another_source_is_refused(tmp_path):
+    data = source()
+    finished_run(tmp_path / "run", data, "cd" * 32, 1.0, 1.0)
+    sources = {"local/hopper/medium-replay-v0": (data, SimpleNamespace(sha256="ab" * 32))}
+    with pytest.raises(DataFormatError, match="source_sha256"):
+        critic_probe.probe(tmp_path / "run", sources)
