@@ -61,7 +61,7 @@ def run_folders(root: Path) -> list[Path]:
     )
 
 
-def critic_values(state: dict, observations, actions):
+def critic_values(state: dict, observations, actions, origin: str):
     """min over the twin critics of Q(s, a) for every row, on the CPU, in chunks."""
     import torch
 
@@ -75,7 +75,7 @@ def critic_values(state: dict, observations, actions):
         device="cpu",
         seed=int(state["seed"]),
     )
-    model.load_seed_states([state])
+    model.load_seed_states([state], origin=origin)
     values = []
     with torch.no_grad():
         for start in range(0, len(observations), CHUNK):
@@ -85,11 +85,12 @@ def critic_values(state: dict, observations, actions):
     return torch.cat(values).numpy()
 
 
-def probe(folder: Path, sources: dict) -> dict:
+def probe(folder: Path, config: dict, sources: dict) -> dict:
+    """One run's row: `config` is its config.json, `sources` maps source ids to loaded sources."""
     from hipode_pipeline.errors import DataFormatError
+    from hipode_pipeline.files import display_path
     from hipode_pipeline.run_folder import load_checkpoint
 
-    config = json.loads((folder / "config.json").read_text())
     source, info = sources[config["source_id"]]
     if info.sha256 != config.get("source_sha256"):
         raise DataFormatError(
@@ -98,16 +99,17 @@ def probe(folder: Path, sources: dict) -> dict:
             f"{info.sha256} (the source under the dataset root; rebuild the run's own source)",
             config.get("source_sha256"),
         )
-    state = load_checkpoint(folder / "checkpoint.pt")["learner"]
+    checkpoint = folder / "checkpoint.pt"
+    state = load_checkpoint(checkpoint)["learner"]
     if state["learner"] != "td3bc":
-        raise DataFormatError(folder / "checkpoint.pt", "learner", "td3bc", state["learner"])
-    q = critic_values(state, source.observations, source.actions)
+        raise DataFormatError(checkpoint, "learner", "td3bc", state["learner"])
+    q = critic_values(state, source.observations, source.actions, str(checkpoint))
     falls = source.terminals
     q_falls, r_falls = float(q[falls].mean()), float(source.rewards[falls].mean())
     q_all = float(q.mean())
     rows, to_fall = before_falls(source, float(state["config"].get("discount", 0.99)))
     return {
-        "run": str(folder.relative_to(REPO) if folder.is_relative_to(REPO) else folder),
+        "run": display_path(folder),
         "arm": folder.parent.name,
         "seed": int(config["seed"]),
         "step": int(state["step"]),
@@ -144,21 +146,22 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("folder", type=Path, help="A sweep folder (bench/evidence/runs/<...>).")
     args = parser.parse_args(argv)
     os.chdir(REPO)
-    import torch
-
     from hipode_pipeline.data.load import load_source
     from hipode_pipeline.files import write_json_atomic, write_text_atomic
     from hipode_pipeline.paths import datasets_root
+    from hipode_pipeline.threads import torch_threads
     from hipode_pipeline.versions import package_versions
 
-    torch.set_num_threads(1)
     folders = run_folders(args.folder.resolve())
     if not folders:
         sys.exit(f"{args.folder}: no finished run with its checkpoint.pt under it")
-    ids = {json.loads((f / "config.json").read_text())["source_id"] for f in folders}
+    configs = {f: json.loads((f / "config.json").read_text()) for f in folders}
+    ids = {config["source_id"] for config in configs.values()}
     sources = {i: load_source(i, datasets_root()) for i in ids}
     start = time.time()
-    rows = sorted((probe(f, sources) for f in folders), key=lambda r: (r["arm"], r["seed"]))
+    with torch_threads(1):
+        rows = [probe(f, configs[f], sources) for f in folders]
+    rows.sort(key=lambda r: (r["arm"], r["seed"]))
     out = args.folder / "report" / "td3bc"
     out.mkdir(parents=True, exist_ok=True)
     record = {

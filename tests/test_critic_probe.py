@@ -52,16 +52,19 @@ def finished_run(folder: Path, data: Transitions, sha: str, q_first: float, q_se
     record = {"seed": 3, "source_id": "local/hopper/medium-replay-v0", "source_sha256": sha}
     (folder / "config.json").write_text(json.dumps(record))
     (folder / "scores.json").write_text("{}")
+    return record
 
 
 def test_falls_are_valued_by_the_smaller_twin(tmp_path):
     data = source()
-    finished_run(tmp_path / "hopper-m-r" / "hipode" / "td3bc-seed3", data, "ab" * 32, 7.0, 5.0)
+    config = finished_run(
+        tmp_path / "hopper-m-r" / "hipode" / "td3bc-seed3", data, "ab" * 32, 7.0, 5.0
+    )
     (tmp_path / "hopper-m-r" / "eta0" / "td3bc-seed0").mkdir(parents=True)  # unfinished: skipped
     folders = critic_probe.run_folders(tmp_path)
     assert [f.parent.name for f in folders] == ["hipode"]
     sources = {"local/hopper/medium-replay-v0": (data, SimpleNamespace(sha256="ab" * 32))}
-    row = critic_probe.probe(folders[0], sources)
+    row = critic_probe.probe(folders[0], config, sources)
     falls = data.rewards[data.terminals]
     assert (row["arm"], row["seed"], row["rows"], row["falls"]) == ("hipode", 3, 60, 3)
     assert row["q_mean"] == pytest.approx(5.0) and row["q_falls"] == pytest.approx(5.0)
@@ -82,7 +85,7 @@ def test_falls_are_valued_by_the_smaller_twin(tmp_path):
 
 def test_a_run_of_another_source_is_refused(tmp_path):
     data = source()
-    finished_run(tmp_path / "run", data, "cd" * 32, 1.0, 1.0)
+    config = finished_run(tmp_path / "run", data, "cd" * 32, 1.0, 1.0)
     sources = {"local/hopper/medium-replay-v0": (data, SimpleNamespace(sha256="ab" * 32))}
     with pytest.raises(DataFormatError, match="source_sha256"):
-        critic_probe.probe(tmp_path / "run", sources)
+        critic_probe.probe(tmp_path / "run", config, sources)

@@ -85,13 +85,13 @@ def verify(
     # checked before any artifact is verified: nothing is half-written or written twice
     reports_of: dict[Path, Path] = {}
     for file in files:
-        for path in output_paths(Path(file), out_dir):
-            if path.resolve() in reports_of:
+        for path in map(Path.resolve, output_paths(Path(file), out_dir)):
+            if path in reports_of:
                 raise SettingError(
-                    f"{reports_of[path.resolve()]} and {file}: both would write {path} (the "
-                    "same file name in one --out-dir); verify them with separate --out-dir"
+                    f"{reports_of[path]} and {file}: both would write {path} (the same file "
+                    "name in one --out-dir); verify them with separate --out-dir"
                 )
-            reports_of[path.resolve()] = Path(file)
+            reports_of[path] = Path(file)
     if not force:
         wanted = [*reports_of, *(summary_paths(summary_dir) if len(files) > 1 else ())]
         existing = [str(p) for p in wanted if p.exists()]
