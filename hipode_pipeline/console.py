@@ -46,15 +46,20 @@ out = _console(stderr=False)
 # seconds between two plain progress lines when stderr is not a terminal (logs, CI, nohup)
 LINE_EVERY_ENV = "HIPODE_PROGRESS_EVERY"
 LINE_EVERY_DEFAULT = 30.0
+# set in a process that works beside others on one terminal (the sweep's stage-one builds):
+# its progress comes as plain lines led by this label, since live displays would overwrite
+# each other
+LABEL_ENV = "HIPODE_PROGRESS_LABEL"
 
 
 class LineProgress(Progress):
     """Progress for a log file: no live display, a plain line per task every `every` seconds
     and when it finishes (count, share, rate, elapsed, ETA, info)."""
 
-    def __init__(self, *columns: Any, every: float, **options: Any):
+    def __init__(self, *columns: Any, every: float, label: str = "", **options: Any):
         super().__init__(*columns, disable=True, **options)
         self.every = every
+        self.label = label
         self._printed: dict[Any, float] = {}
         self._finished: set[Any] = set()
 
@@ -86,7 +91,8 @@ class LineProgress(Progress):
         total = f"/{task.total:,.0f}" if task.total is not None else ""
         eta = task.time_remaining
         parts = [
-            f"{task.description}: {task.completed:,.0f}{total}{share}",
+            f"{self.label}: " * bool(self.label)
+            + f"{task.description}: {task.completed:,.0f}{total}{share}",
             str(task.fields.get("rate", "")),
             f"elapsed {_clock(task.elapsed or 0.0)}",
             "" if finished or eta is None else f"ETA {_clock(eta)}",
@@ -104,8 +110,9 @@ def _clock(seconds: float) -> str:
 def progress(*, disable: bool = False) -> Progress:
     """A progress display with count, rate and ETA; task fields `rate` and `info` show extras.
 
-    Off a terminal it prints plain lines instead (every $HIPODE_PROGRESS_EVERY seconds, 30 by
-    default), since a live display would show nothing in a log until the end."""
+    Off a terminal, or with $HIPODE_PROGRESS_LABEL set, it prints plain lines instead (every
+    $HIPODE_PROGRESS_EVERY seconds, 30 by default, led by the label), since a live display
+    would show nothing in a log until the end."""
     columns = (
         TextColumn("[bold]{task.description}"),
         BarColumn(),
@@ -117,9 +124,10 @@ def progress(*, disable: bool = False) -> Progress:
         TimeRemainingColumn(),
         TextColumn("{task.fields[info]}"),
     )
-    if not disable and not err.is_terminal:
+    label = os.environ.get(LABEL_ENV, "")
+    if not disable and (label or not err.is_terminal):
         every = float(os.environ.get(LINE_EVERY_ENV, LINE_EVERY_DEFAULT))
-        return LineProgress(*columns, every=every, console=err)
+        return LineProgress(*columns, every=every, label=label, console=err)
     return Progress(*columns, console=err, disable=disable)
 
 

@@ -25,6 +25,10 @@ class DataFormatError(HipodeError):
             message += f", found {found}"
         super().__init__(message)
 
+    def __reduce__(self):
+        # rebuilt from its fields: a worker process's error reaches the parent whole
+        return type(self), (self.path, self.field, self.expected, self.found)
+
 
 class UnknownTaskError(HipodeError):
     """A task name that is not in the registry."""

@@ -315,6 +315,65 @@ def prepare_artifact(
     return Path(summary.artifact)
 
 
+def stage_one_seed(arm: Arm, config: SweepConfig) -> int:
+    """The stage-one seed of an arm's artifact (its generators are trained with it)."""
+    return (arm.augment or {}).get("seed", config.artifact_seed)
+
+
+def prepare_artifacts(
+    task: Task, arms: list[Arm], config: SweepConfig, root: Path, info: SourceInfo
+) -> dict[tuple[str, str], Path | None]:
+    """Every (learner, arm)'s artifact (`prepare_artifact`), None for η = 0.
+
+    Artifacts of one stage-one seed are built in order in one process: they share that seed's
+    cached generators. With --workers above 1, the seeds are built side by side, one spawned
+    process each (up to --workers), their progress as plain lines led by the seed."""
+    paths: dict[tuple[str, str], Path | None] = {}
+    groups: dict[int, list[tuple[str, Arm]]] = {}
+    for learner in config.learners:
+        for arm in arms:
+            paths[learner, arm.name] = None
+            if arm.data != "source":
+                groups.setdefault(stage_one_seed(arm, config), []).append((learner, arm))
+    jobs = [(task.name, group, config, root, info) for _, group in sorted(groups.items())]
+    processes = min(config.workers, len(jobs))
+    if processes <= 1 or config.report_only:
+        built = [prepare_group(*job) for job in jobs]
+    else:
+        from multiprocessing import get_context
+
+        console.err.print(
+            f"{task.name}: building the artifacts of stage-one seeds {sorted(groups)} in "
+            f"{processes} processes"
+        )
+        with get_context("spawn").Pool(processes, maxtasksperchild=1) as pool:
+            built = pool.starmap(prepare_group, jobs, chunksize=1)
+    for group in built:
+        paths.update(group)
+    return paths
+
+
+def prepare_group(
+    task_name: str,
+    group: list[tuple[str, Arm]],
+    config: SweepConfig,
+    root: Path,
+    info: SourceInfo,
+) -> dict[tuple[str, str], Path | None]:
+    """One stage-one seed's artifacts, in order (a worker process's job)."""
+    import multiprocessing
+    import os
+
+    task = get_task(task_name)
+    if multiprocessing.parent_process() is not None:
+        seed = stage_one_seed(group[0][1], config)
+        os.environ[console.LABEL_ENV] = f"{task.name} stage-one seed {seed}"
+    return {
+        (learner, arm.name): prepare_artifact(task, learner, arm, config, root, info)
+        for learner, arm in group
+    }
+
+
 def synthetic_stats(artifact: Path, source: tuple[Transitions, SourceInfo]) -> dict[str, Any]:
     """What an arm's synthetic data is: its rewards against the real rewards at the same source
     states, its dynamics error, terminal share and novelty (from stage one's summary)."""
@@ -358,11 +417,7 @@ def run_specs(
             task, config.source, root, config.show_progress, config.allow_off_band
         )
         described[task.name] = []
-        paths = {
-            (learner, arm.name): prepare_artifact(task, learner, arm, config, root, source[1])
-            for learner in config.learners
-            for arm in arms
-        }
+        paths = prepare_artifacts(task, arms, config, root, source[1])
         # arms that share an artifact (the table's setting) read it once
         stats = {
             path: synthetic_stats(path, source) for path in set(paths.values()) if path is not None
