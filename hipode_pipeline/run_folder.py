@@ -138,7 +138,7 @@ def finish_run(result: TrainResult, eval_episodes: int) -> TrainResult:
 def differing_settings(run_dir: Path, expected: dict[str, Any]) -> list[str]:
     """The keys of `expected` whose value differs from the run folder's config.json."""
     config_path = run_dir / "config.json"
-    previous = _read_json(config_path) if config_path.is_file() else {}
+    previous = read_run_json(config_path) if config_path.is_file() else {}
     return [
         key
         for key, value in expected.items()
@@ -146,7 +146,8 @@ def differing_settings(run_dir: Path, expected: dict[str, Any]) -> list[str]:
     ]
 
 
-def _read_json(path: Path) -> dict[str, Any]:
+def read_run_json(path: Path) -> dict[str, Any]:
+    """A run folder's JSON record (config.json, scores.json); unreadable content is refused."""
     try:
         data = json.loads(path.read_text())
     except (OSError, ValueError) as error:
@@ -164,7 +165,7 @@ def scores_if_finished(run_dir: Path, steps: int) -> dict[str, Any] | None:
     scores_path = run_dir / "scores.json"
     if not scores_path.is_file():
         return None
-    scores = _read_json(scores_path)
+    scores = read_run_json(scores_path)
     return scores if scores.get("steps", 0) >= steps else None
 
 

@@ -127,6 +127,19 @@ def test_sweep_runs_both_arms_reports_and_resumes(tmp_path, dataset_root):
     other = invoke(tmp_path, source, "--steps", "20", "--eval-episodes", "3")
     assert other.exit_code == 2 and "other settings" in other.output
 
+    # --report-only on a machine without the artifact reads the runs back and builds nothing
+    built.unlink()
+    bare = invoke(tmp_path, source, "--steps", "30", "--report-only")
+    assert bare.exit_code == 0, bare.output
+    assert [r["final_score"] for r in json.loads(bare.stdout)["runs"]] == [
+        r["final_score"] for r in longer["runs"]
+    ]
+    assert "not built for --report-only" in " ".join(bare.stderr.split())
+    assert not built.exists()
+    hipode_rows = described["hipode"]["synthetic"]["rows"]
+    assert f"| hopper-m-r | hipode | {hipode_rows:,} |" in markdown
+    assert f"| hopper-m-r | hipode | {hipode_rows:,} |" not in (results / "quality.md").read_text()
+
 
 def test_sweep_over_learners_pairs_each_with_its_own_baseline(tmp_path, dataset_root):
     source = write_source(tmp_path / "source.hdf5", n_episodes=8)
@@ -262,6 +275,22 @@ def test_ray_engine_runs_a_tiny_sweep(tmp_path):
     for arm in ("eta0", "hipode"):
         assert len({r["worker_pid"] for r in result["runs"] if r["arm"] == arm}) == 1
     assert result["machine"]["engine"] == "ray"
+
+
+def test_a_missing_artifact_is_known_by_the_checksum_its_runs_record(tmp_path):
+    config = plan.SweepConfig(seeds=[0, 1, 2], out=tmp_path)
+    arm = tmp_path / "hopper-m-r" / "hipode"
+    missing = tmp_path / "gone.hdf5"
+    assert plan.recorded_checksum(config, "hopper-m-r", "td3bc", "hipode", missing) is None
+    for seed, checksum in [(0, "sha256:aa"), (2, "sha256:aa")]:
+        (arm / f"td3bc-seed{seed}").mkdir(parents=True)
+        record = {"artifact_checksum": checksum, "seed": seed}
+        (arm / f"td3bc-seed{seed}" / "config.json").write_text(json.dumps(record))
+    assert plan.recorded_checksum(config, "hopper-m-r", "td3bc", "hipode", missing) == "sha256:aa"
+    (arm / "td3bc-seed1").mkdir()
+    (arm / "td3bc-seed1" / "config.json").write_text(json.dumps({"artifact_checksum": "sha256:bb"}))
+    with pytest.raises(HipodeError, match="artifact_checksum.*gone.hdf5"):
+        plan.recorded_checksum(config, "hopper-m-r", "td3bc", "hipode", missing)
 
 
 def test_synthetic_stats_refuse_an_artifact_of_another_source(tmp_path):

@@ -201,7 +201,11 @@ def sweep_command_for(
         root: RootOption = None,
         force: ForceFlag = False,
         report_only: Annotated[
-            bool, typer.Option("--report-only", help="Train nothing; report the finished runs.")
+            bool,
+            typer.Option(
+                "--report-only",
+                help="Train nothing, nor build artifacts; report the finished runs.",
+            ),
         ] = False,
         note: Annotated[
             str,

@@ -272,8 +272,23 @@ def prepare_artifact(
     }
     overrides = {"seed": config.artifact_seed, **(arm.augment or {})}
     out: Path | None
-    if all(defaults[key] == value for key, value in overrides.items()):
-        path = config.artifact or table_artifact_path(task, learner, config, root, info)
+    table_row = all(defaults[key] == value for key, value in overrides.items())
+    name = "artifact.hdf5" if learner == "td3bc" else f"artifact-{learner}.hdf5"
+    expected = (
+        config.artifact or table_artifact_path(task, learner, config, root, info)
+        if table_row
+        else config.out / task.name / arm.name / name
+    )
+    if config.report_only and not expected.is_file():
+        # reporting trains nothing, stage one included
+        console.err.print(
+            f"[yellow]{task.name} {arm.name}: no artifact at {expected}; not built for "
+            "--report-only (its runs are read with the checksum they record; no synthetic-data "
+            "row)[/]"
+        )
+        return expected
+    if table_row:
+        path = expected
         if arm.augment:
             console.err.print(f"{task.name} {arm.name}: the table's setting; shares {path}")
         if config.artifact is not None and path.is_file():
@@ -285,8 +300,7 @@ def prepare_artifact(
             )
         out = config.artifact  # None: stage one's own name for the table-row artifact
     else:
-        name = "artifact.hdf5" if learner == "td3bc" else f"artifact-{learner}.hdf5"
-        out = config.out / task.name / arm.name / name
+        out = expected
         if not out.is_file():
             console.err.print(
                 f"[yellow]{task.name} {arm.name}: building its artifact at {out} (stage one: "
@@ -374,6 +388,27 @@ def prepare_group(
     }
 
 
+def recorded_checksum(
+    config: SweepConfig, task_name: str, learner: str, arm_name: str, artifact: Path
+) -> str | None:
+    """The artifact checksum that an arm's run folders record, for an artifact not on this
+    machine (None without any); runs that name different artifacts are refused."""
+    from hipode_pipeline.run_folder import read_run_json
+
+    found = {}
+    for seed in config.seeds:
+        run_config = config.out / task_name / arm_name / f"{learner}-seed{seed}" / "config.json"
+        if run_config.is_file():
+            found[seed] = read_run_json(run_config).get("artifact_checksum")
+    if len(set(found.values())) > 1:
+        raise HipodeError(
+            f"{config.out / task_name / arm_name}: field 'artifact_checksum': expected one "
+            f"artifact for every seed of the arm (its artifact {artifact} is not here to "
+            f"decide), found {found}"
+        )
+    return next(iter(found.values()), None)
+
+
 def synthetic_stats(artifact: Path, source: tuple[Transitions, SourceInfo]) -> dict[str, Any]:
     """What an arm's synthetic data is: its rewards against the real rewards at the same source
     states, its dynamics error, terminal share and novelty (from stage one's summary)."""
@@ -420,7 +455,18 @@ def run_specs(
         paths = prepare_artifacts(task, arms, config, root, source[1])
         # arms that share an artifact (the table's setting) read it once
         stats = {
-            path: synthetic_stats(path, source) for path in set(paths.values()) if path is not None
+            path: synthetic_stats(path, source)
+            for path in set(paths.values())
+            if path is not None and path.is_file()
+        }
+        # --report-only leaves a missing artifact unbuilt: its runs name the one they trained on
+        checksums = {
+            path: recorded_checksum(config, task.name, learner, arm.name, path)
+            if path not in stats
+            else stats[path]["checksum"]
+            for (learner, name), path in paths.items()
+            for arm in arms
+            if arm.name == name and path is not None
         }
         for learner in config.learners:
             for arm in arms:
@@ -454,9 +500,7 @@ def run_specs(
                             root=str(root),
                             source=config.source,
                             artifact=None if artifact is None else str(artifact.resolve()),
-                            artifact_checksum=None
-                            if artifact is None
-                            else stats[artifact]["checksum"],
+                            artifact_checksum=checksums.get(artifact),
                             device=config.device,
                             threads=config.threads,
                             force=config.force,
