@@ -91,7 +91,7 @@ class LineProgress(Progress):
         total = f"/{task.total:,.0f}" if task.total is not None else ""
         eta = task.time_remaining
         parts = [
-            f"{self.label}: " * bool(self.label)
+            (f"{self.label}: " if self.label else "")
             + f"{task.description}: {task.completed:,.0f}{total}{share}",
             str(task.fields.get("rate", "")),
             f"elapsed {_clock(task.elapsed or 0.0)}",

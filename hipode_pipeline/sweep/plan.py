@@ -25,7 +25,7 @@ import numpy as np
 from hipode_pipeline import console
 from hipode_pipeline.data.transitions import SourceInfo, Transitions
 from hipode_pipeline.errors import DatasetNotFoundError, HipodeError, OverwriteError, SettingError
-from hipode_pipeline.sweep.worker import RunSpec, unit_key
+from hipode_pipeline.sweep.worker import RunSpec, run_folder, unit_key
 from hipode_pipeline.tasks import LEARNERS, Task, get_task
 
 DEFAULT_TASKS = ("hopper-m-r", "walker2d-m-r", "halfcheetah-m-r")
@@ -349,17 +349,21 @@ def prepare_artifacts(
             paths[learner, arm.name] = None
             if arm.data != "source":
                 groups.setdefault(stage_one_seed(arm, config), []).append((learner, arm))
-    jobs = [(task.name, group, config, root, info) for _, group in sorted(groups.items())]
-    processes = min(config.workers, len(jobs))
+    seeds = sorted(groups)
+    processes = min(config.workers, len(seeds))
     if processes <= 1 or config.report_only:
-        built = [prepare_group(*job) for job in jobs]
+        built = [prepare_group(task.name, groups[seed], config, root, info) for seed in seeds]
     else:
         from multiprocessing import get_context
 
         console.err.print(
-            f"{task.name}: building the artifacts of stage-one seeds {sorted(groups)} in "
+            f"{task.name}: building the artifacts of stage-one seeds {seeds} in "
             f"{processes} processes"
         )
+        jobs = [
+            (task.name, groups[seed], config, root, info, f"{task.name} stage-one seed {seed}")
+            for seed in seeds
+        ]
         with get_context("spawn").Pool(processes, maxtasksperchild=1) as pool:
             built = pool.starmap(prepare_group, jobs, chunksize=1)
     for group in built:
@@ -373,15 +377,15 @@ def prepare_group(
     config: SweepConfig,
     root: Path,
     info: SourceInfo,
+    label: str | None = None,
 ) -> dict[tuple[str, str], Path | None]:
-    """One stage-one seed's artifacts, in order (a worker process's job)."""
-    import multiprocessing
+    """One stage-one seed's artifacts, in order; `label` leads the progress lines of a worker
+    process building beside others."""
     import os
 
+    if label is not None:
+        os.environ[console.LABEL_ENV] = label
     task = get_task(task_name)
-    if multiprocessing.parent_process() is not None:
-        seed = stage_one_seed(group[0][1], config)
-        os.environ[console.LABEL_ENV] = f"{task.name} stage-one seed {seed}"
     return {
         (learner, arm.name): prepare_artifact(task, learner, arm, config, root, info)
         for learner, arm in group
@@ -397,7 +401,7 @@ def recorded_checksum(
 
     found = {}
     for seed in config.seeds:
-        run_config = config.out / task_name / arm_name / f"{learner}-seed{seed}" / "config.json"
+        run_config = run_folder(config.out, task_name, arm_name, learner, seed) / "config.json"
         if run_config.is_file():
             found[seed] = read_run_json(run_config).get("artifact_checksum")
     if len(set(found.values())) > 1:
@@ -461,12 +465,11 @@ def run_specs(
         }
         # --report-only leaves a missing artifact unbuilt: its runs name the one they trained on
         checksums = {
-            path: recorded_checksum(config, task.name, learner, arm.name, path)
-            if path not in stats
-            else stats[path]["checksum"]
-            for (learner, name), path in paths.items()
-            for arm in arms
-            if arm.name == name and path is not None
+            key: stats[path]["checksum"]
+            if path in stats
+            else recorded_checksum(config, task.name, *key, path)
+            for key, path in paths.items()
+            if path is not None
         }
         for learner in config.learners:
             for arm in arms:
@@ -500,7 +503,7 @@ def run_specs(
                             root=str(root),
                             source=config.source,
                             artifact=None if artifact is None else str(artifact.resolve()),
-                            artifact_checksum=checksums.get(artifact),
+                            artifact_checksum=checksums.get((learner, arm.name)),
                             device=config.device,
                             threads=config.threads,
                             force=config.force,

@@ -48,7 +48,12 @@ class RunSpec:
 
     def run_dir(self) -> Path:
         """The run's own folder: the sweep names it, so arms never share one."""
-        return Path(self.out_dir) / self.task / self.arm / f"{self.learner}-seed{self.seed}"
+        return run_folder(self.out_dir, self.task, self.arm, self.learner, self.seed)
+
+
+def run_folder(out_dir: str | Path, task: str, arm: str, learner: str, seed: int) -> Path:
+    """<out>/<task>/<arm>/<learner>-seed<seed>: where the sweep keeps one run."""
+    return Path(out_dir) / task / arm / f"{learner}-seed{seed}"
 
 
 def finished_scores(spec: RunSpec) -> dict[str, Any] | None:
