@@ -214,12 +214,20 @@ def _rliable():
 def _bootstrap(scores: Any, func, reps: int, seed: int) -> tuple[Any, np.ndarray]:
     """rliable's stratified bootstrap of `func` on `scores`: (point estimate, CI array)."""
     library, _ = _rliable()
-    with warnings.catch_warnings():
-        # arch, under rliable, warns that RandomState is deprecated; the seed is still honoured
-        warnings.simplefilter("ignore", FutureWarning)
-        point, interval = library.get_interval_estimates(
-            {"x": scores}, func, reps=reps, random_state=np.random.RandomState(seed)
-        )
+    # rliable's stratified bootstraps draw their resamples from numpy's global stream, not from
+    # random_state: seed that stream per call (and give the caller's back), so an interval
+    # depends on its own scores, reps and seed only, not on the process or the other groups
+    caller_state = np.random.get_state()
+    np.random.seed(seed)
+    try:
+        with warnings.catch_warnings():
+            # arch, under rliable, warns that RandomState is deprecated
+            warnings.simplefilter("ignore", FutureWarning)
+            point, interval = library.get_interval_estimates(
+                {"x": scores}, func, reps=reps, random_state=np.random.RandomState(seed)
+            )
+    finally:
+        np.random.set_state(caller_state)
     return point["x"], interval["x"]
 
 

@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 
 from hipode_pipeline.cli import app
 from hipode_pipeline.errors import DataFormatError, SettingError
-from hipode_pipeline.report import build_report, find_runs
+from hipode_pipeline.report import build_report, find_runs, improvement, interval_estimates
 from hipode_pipeline.report import markdown as report_markdown
 
 pytest.importorskip("rliable", reason="the report extra (rliable) is not installed")
@@ -98,6 +98,22 @@ def test_comparison_pairs_seeds(two_arms):
     # unpaired, 5 more is not always better (seed 0 at 15 loses to seed 1 at 20): 10 of 16 pairs
     probability = last["probability_of_improvement"]["probability"]
     assert probability == pytest.approx(10 / 16)
+
+
+def test_intervals_depend_on_their_own_scores_and_seed_only():
+    # many distinct scores, so a different resample shows in the interval's bounds
+    x = np.random.default_rng(3).normal(30.0, 10.0, size=9)
+    y = np.random.default_rng(4).normal(25.0, 10.0, size=7)
+    first, first_pi = interval_estimates(x, 2000, 0), improvement(x, y, 2000, 0)
+    np.random.seed(12345)  # what a caller, or another group, left in numpy's global stream
+    np.random.random(17)
+    caller_next = np.random.get_state()[1].copy()
+    again, again_pi = interval_estimates(x, 2000, 0), improvement(x, y, 2000, 0)
+    assert again["mean_ci"] == first["mean_ci"] and again["iqm_ci"] == first["iqm_ci"]
+    assert again_pi["ci"] == first_pi["ci"]
+    assert interval_estimates(x, 2000, 1)["mean_ci"] != first["mean_ci"]  # the seed is used
+    # the caller's stream is given back as it was
+    assert np.array_equal(np.random.get_state()[1], caller_next)
 
 
 def test_same_seed_twice_in_a_group_is_refused(tmp_path, two_arms):
