@@ -13,6 +13,7 @@ from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
     Progress,
+    Task,
     TaskProgressColumn,
     TextColumn,
     TimeElapsedColumn,
@@ -20,6 +21,10 @@ from rich.progress import (
 )
 from rich.table import Table
 from rich.text import Text
+
+# a task field: its own estimate of the seconds left, for tasks whose steps are too slow and
+# uneven for rich's estimate (the speed over the last 30 s) to say anything
+ETA_FIELD = "eta_s"
 
 # width off a terminal (logs, pipes, CI) unless $COLUMNS says otherwise
 LOG_WIDTH = 160
@@ -89,7 +94,7 @@ class LineProgress(Progress):
             self._finished.add(task_id)
         share = f" ({100 * task.completed / task.total:.0f}%)" if task.total else ""
         total = f"/{task.total:,.0f}" if task.total is not None else ""
-        eta = task.time_remaining
+        eta = time_remaining(task)
         parts = [
             (f"{self.label}: " if self.label else "")
             + f"{task.description}: {task.completed:,.0f}{total}{share}",
@@ -101,6 +106,23 @@ class LineProgress(Progress):
         self.console.print(Text("  ".join(p for p in parts if p)), highlight=False, soft_wrap=True)
 
 
+def time_remaining(task: Task) -> float | None:
+    """The task's own estimate of the seconds left where it gives one, else rich's."""
+    if ETA_FIELD in task.fields:
+        return task.fields[ETA_FIELD]
+    return task.time_remaining
+
+
+class RemainingColumn(TimeRemainingColumn):
+    """rich's time-remaining column, showing the task's own estimate where it gives one."""
+
+    def render(self, task: Task) -> Text:
+        if ETA_FIELD not in task.fields:
+            return super().render(task)
+        eta = task.fields[ETA_FIELD]
+        return Text("-:--:--" if eta is None else _clock(eta), style="progress.remaining")
+
+
 def _clock(seconds: float) -> str:
     minutes, secs = divmod(int(seconds), 60)
     hours, minutes = divmod(minutes, 60)
@@ -108,7 +130,8 @@ def _clock(seconds: float) -> str:
 
 
 def progress(*, disable: bool = False) -> Progress:
-    """A progress display with count, rate and ETA; task fields `rate` and `info` show extras.
+    """A progress display with count, rate and ETA; task fields `rate` and `info` show extras,
+    and `eta_s` (seconds, or None for not yet known) replaces rich's estimate of the time left.
 
     Off a terminal, or with $HIPODE_PROGRESS_LABEL set, it prints plain lines instead (every
     $HIPODE_PROGRESS_EVERY seconds, 30 by default, led by the label), since a live display
@@ -121,7 +144,7 @@ def progress(*, disable: bool = False) -> Progress:
         TextColumn("[cyan]{task.fields[rate]}"),
         TimeElapsedColumn(),
         TextColumn("ETA"),
-        TimeRemainingColumn(),
+        RemainingColumn(),
         TextColumn("{task.fields[info]}"),
     )
     label = os.environ.get(LABEL_ENV, "")

@@ -50,3 +50,22 @@ def test_progress_lines_are_spaced_in_time(monkeypatch, capsys):
             prog.update(bar, completed=step)
     lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith("train")]
     assert lines == [lines[-1]] and lines[-1].startswith("train: 1,000/1,000")
+
+
+def test_a_task_can_give_its_own_time_left(monkeypatch, capsys):
+    from rich.console import Console
+
+    monkeypatch.setenv(console.LINE_EVERY_ENV, "0")
+    with console.progress() as prog:
+        bar = prog.add_task("sweep runs", total=10, rate="", info="", eta_s=None)
+        prog.update(bar, advance=1)  # not yet known: no ETA at all
+        prog.update(bar, advance=1, eta_s=2 * 3600 + 5 * 60)
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith("sweep")]
+    assert "ETA" not in lines[0] and "ETA 2:05:00" in lines[1]
+    # the live display's column shows the same estimate
+    screen = Console(record=True, width=200, force_terminal=True)
+    live = console.Progress(console.RemainingColumn(), console=screen, auto_refresh=False)
+    with live:
+        task = live.add_task("x", total=10, eta_s=125.0)
+        live.refresh()
+    assert "0:02:05" in screen.export_text()

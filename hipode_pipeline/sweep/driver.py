@@ -30,6 +30,7 @@ from hipode_pipeline.sweep.plan import (
     run_units,
 )
 from hipode_pipeline.sweep.report import QualityReport, curve_plot, markdown, summarize
+from hipode_pipeline.sweep.worker import FINISHED_EARLIER
 
 
 def results_dir(config: SweepConfig) -> Path:
@@ -79,6 +80,30 @@ def command_line(config: SweepConfig) -> str:
     return shlex.join(args)
 
 
+class Pace:
+    """The sweep's throughput and time left, from the runs this call trained: runs read back
+    from an earlier call arrive at once and would make any rate over them meaningless."""
+
+    def __init__(self, total: int):
+        self.total, self.done, self.trained = total, 0, 0
+        self.clock = time.perf_counter()
+
+    def add(self, record: dict) -> None:
+        self.done += 1
+        self.trained += record["status"] != FINISHED_EARLIER
+
+    def fields(self) -> dict[str, object]:
+        """The progress bar's `rate` and `eta_s`: None until a run trained here has finished."""
+        elapsed = time.perf_counter() - self.clock
+        if not self.trained or elapsed <= 0:
+            return {"rate": "", console.ETA_FIELD: None if self.done < self.total else 0.0}
+        per_run = elapsed / self.trained  # with N workers, about a run's time / N
+        return {
+            "rate": f"{3600 / per_run:.1f} runs/h",
+            console.ETA_FIELD: (self.total - self.done) * per_run,
+        }
+
+
 def run_sweep(config: SweepConfig) -> QualityReport:
     """Run (or resume) the sweep and write quality.md, quality.json and quality.png."""
     import torch
@@ -100,7 +125,9 @@ def run_sweep(config: SweepConfig) -> QualityReport:
     keys = {(a["learner"], a["name"]): a["key"] for task_arms in arms.values() for a in task_arms}
     runs = []
     with LoadSampler() as load, console.progress(disable=not config.show_progress) as prog:
-        bar = prog.add_task("sweep runs", total=len(specs), rate="", info="")
+        bar = prog.add_task(
+            "sweep runs", total=len(specs), rate="", info="", **{console.ETA_FIELD: None}
+        )
         units = run_units(specs, config.seeds_per_process)
         if not config.report_only and len(units) < config.workers:
             console.err.print(
@@ -114,15 +141,16 @@ def run_sweep(config: SweepConfig) -> QualityReport:
             executed = run_local(units, config.workers)
         else:
             executed = run_ray(units, config.address, config.workers)
+        pace = Pace(len(specs))
         for record in executed:
             key = keys[record["learner"], record["arm"]]
             runs.append({**record, "key": key, "run_dir": display_path(record["run_dir"])})
-            elapsed = time.perf_counter() - clock
+            pace.add(record)
             prog.update(
                 bar,
                 advance=1,
-                rate=f"{len(runs) / elapsed * 3600:.1f} runs/h",
                 info=f"{record['task']} {key} seed {record['seed']}: {record['final_score']:.1f}",
+                **pace.fields(),
             )
     if not runs:
         raise HipodeError(f"{config.out}: no finished runs at {steps} steps to report")

@@ -11,7 +11,13 @@ from typing import Any
 
 from hipode_pipeline import console
 from hipode_pipeline.errors import HipodeError
-from hipode_pipeline.sweep.worker import RunSpec, finished_scores, run_record, run_unit
+from hipode_pipeline.sweep.worker import (
+    FINISHED_EARLIER,
+    RunSpec,
+    finished_scores,
+    run_record,
+    run_unit,
+)
 
 
 def unit_dicts(units: list[list[RunSpec]]) -> list[list[dict[str, Any]]]:
@@ -38,7 +44,7 @@ def read_finished(specs: list[RunSpec]) -> Iterator[dict[str, Any]]:
         if scores is None:
             missing.append(f"{spec.task} {spec.learner} {spec.arm} seed {spec.seed}")
             continue
-        yield run_record(spec, scores, "finished earlier")
+        yield run_record(spec, scores, FINISHED_EARLIER)
     if missing:
         console.err.print(f"[yellow]not finished at this budget, left out: {', '.join(missing)}[/]")
 

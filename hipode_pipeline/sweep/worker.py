@@ -18,6 +18,9 @@ from typing import Any
 
 from hipode_pipeline.errors import HipodeError
 
+# the status of a run read back at the budget instead of trained
+FINISHED_EARLIER = "finished earlier"
+
 
 @dataclass(frozen=True)
 class RunSpec:
@@ -145,7 +148,7 @@ def run_unit(spec_dicts: list[dict[str, Any]]) -> list[dict[str, Any]]:
         if scores is None:
             pending.append(spec)
         else:
-            records[spec.seed] = run_record(spec, scores, "finished earlier")
+            records[spec.seed] = run_record(spec, scores, FINISHED_EARLIER)
     if pending:
         records.update(train_unit(pending))
     return [records[spec.seed] for spec in specs]
@@ -181,7 +184,7 @@ def train_unit(specs: list[RunSpec]) -> dict[int, dict[str, Any]]:
     records = {}
     for run_spec, result in zip(specs, results, strict=True):
         if result.finished_earlier:
-            status = "finished earlier"
+            status = FINISHED_EARLIER
         elif result.resumed_from:
             status = f"resumed from step {result.resumed_from}"
         else:
