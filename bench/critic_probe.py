@@ -8,6 +8,11 @@ Q on the few rows before each fall against the data's return from there to the f
 value if the fall is already certain). A critic that has seen few falls (an arm whose
 synthetic rows are rarely terminal) would value falls and the states before them higher.
 
+And whether a critic's level is right: at a seeded sample of source states (the same for every
+run of a source), the critic's value of the run's own policy, Q(s, π(s)), against that policy's
+discounted return when the simulator is put into s and the policy run from there (--horizon
+steps; a fall ends it, the time limit does not). Q − return > 0 is overestimation.
+
     python bench/critic_probe.py bench/evidence/runs/hopper-m-r-f1a408d8
 
 writes critic_probe.md and .json beside the sweep's report (<folder>/report/td3bc/). Needs the
@@ -30,6 +35,9 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 CHUNK = 32_768  # rows per critic forward: bounded memory on a large source
 BEFORE = 5  # rows before a fall whose critic values are compared with the return to the fall
+STATES = 32  # source states per run at which the critic is compared with the policy's return
+HORIZON = 500  # steps of those returns: the discounted tail beyond is under 1 % at γ = 0.99
+STATES_SEED = 0  # which source states: the same for every run of a source
 
 
 def before_falls(data, discount: float):
@@ -61,21 +69,26 @@ def run_folders(root: Path) -> list[Path]:
     )
 
 
-def critic_values(state: dict, observations, actions, origin: str):
-    """min over the twin critics of Q(s, a) for every row, on the CPU, in chunks."""
-    import torch
-
+def learner(state: dict, obs_dim: int, act_dim: int, origin: str):
+    """The checkpoint's learner (one seed) on the CPU."""
     from hipode_pipeline.learners import learner_class
 
     cls = learner_class(state["learner"])
     model = cls(
-        observations.shape[1],
-        actions.shape[1],
+        obs_dim,
+        act_dim,
         cls.config_class.from_dict(state["config"]),
         device="cpu",
         seed=int(state["seed"]),
     )
     model.load_seed_states([state], origin=origin)
+    return model
+
+
+def critic_values(model, observations, actions):
+    """min over the twin critics of Q(s, a) for every row, on the CPU, in chunks."""
+    import torch
+
     values = []
     with torch.no_grad():
         for start in range(0, len(observations), CHUNK):
@@ -85,8 +98,43 @@ def critic_values(state: dict, observations, actions, origin: str):
     return torch.cat(values).numpy()
 
 
-def probe(folder: Path, config: dict, sources: dict) -> dict:
-    """One run's row: `config` is its config.json, `sources` maps source ids to loaded sources."""
+def start_states(data, env_id: str, count: int):
+    """`count` source rows (seeded, without replacement) whose state the observation fully
+    gives: rows with a velocity at the env's clipping bound cannot be restored."""
+    import numpy as np
+
+    from hipode_pipeline.simulator import clipped_velocity_rows
+
+    exact = np.flatnonzero(~clipped_velocity_rows(env_id, data.observations))
+    rng = np.random.default_rng(STATES_SEED)
+    return np.sort(rng.choice(exact, size=min(count, len(exact)), replace=False))
+
+
+def policy_value_check(model, data, env_id: str, rows, horizon: int, discount: float) -> dict:
+    """Q(s, π(s)) at the source rows `rows` against π's discounted return from s."""
+    from hipode_pipeline.simulator import policy_returns
+
+    observations = data.observations[rows]
+    actions = model.act(observations)
+    q = critic_values(model, observations, actions)
+    returns, steps = policy_returns(
+        env_id, observations, model.act, horizon=horizon, discount=discount
+    )
+    return {
+        "states": len(rows),
+        "horizon": horizon,
+        "q_policy": float(q.mean()),
+        "return_policy": float(returns.mean()),
+        "q_policy_overestimate": float((q - returns).mean()),
+        "falls_within_horizon": int((steps < horizon).sum()),
+    }
+
+
+def probe(
+    folder: Path, config: dict, sources: dict, states: int = STATES, horizon: int = HORIZON
+) -> dict:
+    """One run's row: `config` is its config.json, `sources` maps source ids to loaded sources;
+    `states` source states (0: none) at which Q is checked against the policy's return."""
     from hipode_pipeline.errors import DataFormatError
     from hipode_pipeline.files import display_path
     from hipode_pipeline.run_folder import load_checkpoint
@@ -103,11 +151,18 @@ def probe(folder: Path, config: dict, sources: dict) -> dict:
     state = load_checkpoint(checkpoint)["learner"]
     if state["learner"] != "td3bc":
         raise DataFormatError(checkpoint, "learner", "td3bc", state["learner"])
-    q = critic_values(state, source.observations, source.actions, str(checkpoint))
+    model = learner(state, source.obs_dim, source.act_dim, str(checkpoint))
+    q = critic_values(model, source.observations, source.actions)
     falls = source.terminals
     q_falls, r_falls = float(q[falls].mean()), float(source.rewards[falls].mean())
     q_all = float(q.mean())
-    rows, to_fall = before_falls(source, float(state["config"].get("discount", 0.99)))
+    discount = float(state["config"].get("discount", 0.99))
+    rows, to_fall = before_falls(source, discount)
+    check = {}
+    if states:
+        env_id = config["env_id"]
+        starts = start_states(source, env_id, states)
+        check = policy_value_check(model, source, env_id, starts, horizon, discount)
     return {
         "run": display_path(folder),
         "arm": folder.parent.name,
@@ -123,20 +178,40 @@ def probe(folder: Path, config: dict, sources: dict) -> dict:
         "rows_before_falls": len(rows),
         "q_before_falls": float(q[rows].mean()),
         "return_to_fall": float(to_fall.mean()),
+        **check,
     }
 
 
 def table(rows: list[dict]) -> str:
+    """The falls table, and the policy-value table where the rows have it."""
     head = (
         "| arm | seed | step | Q, all source rows | Q at falls | reward at falls | "
         f"Q − reward at falls | as a share of Q | Q, {BEFORE} rows before falls | "
         "their return to the fall |\n|---|---|---|---|---|---|---|---|---|---|\n"
     )
-    return head + "".join(
-        f"| {r['arm']} | {r['seed']} | {r['step']:,} | {r['q_mean']:.1f} | {r['q_falls']:.1f} | "
-        f"{r['reward_falls']:.2f} | {r['fall_overestimate']:.1f} | "
+    falls = "".join(
+        f"| {r['arm']} | {r['seed']} | {r['step']:,} | {r['q_mean']:.1f} | "
+        f"{r['q_falls']:.1f} | {r['reward_falls']:.2f} | {r['fall_overestimate']:.1f} | "
         f"{100 * r['fall_overestimate_share']:.0f} % | {r['q_before_falls']:.1f} | "
         f"{r['return_to_fall']:.1f} |\n"
+        for r in rows
+    )
+    return head + falls + policy_table([r for r in rows if "q_policy" in r])
+
+
+def policy_table(rows: list[dict]) -> str:
+    """Q(s, π(s)) against π's return per run; empty when no row has it."""
+    if not rows:
+        return ""
+    head = (
+        f"\nAt {rows[0]['states']} source states (the same for every run), the critic's value of "
+        f"the run's own policy against that policy's return in the simulator ({rows[0]['horizon']} "
+        "steps):\n\n| arm | seed | Q(s, π(s)) | return of π from s | Q − return | falls within "
+        "the horizon |\n|---|---|---|---|---|---|\n"
+    )
+    return head + "".join(
+        f"| {r['arm']} | {r['seed']} | {r['q_policy']:.1f} | {r['return_policy']:.1f} | "
+        f"{r['q_policy_overestimate']:+.1f} | {r['falls_within_horizon']} of {r['states']} |\n"
         for r in rows
     )
 
@@ -144,7 +219,13 @@ def table(rows: list[dict]) -> str:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("folder", type=Path, help="A sweep folder (bench/evidence/runs/<...>).")
+    parser.add_argument(
+        "--states", type=int, default=STATES, help="Source states for Q vs the return (0: none)."
+    )
+    parser.add_argument("--horizon", type=int, default=HORIZON, help="Steps of those returns.")
     args = parser.parse_args(argv)
+    if args.states < 0 or args.horizon < 1:
+        sys.exit(f"expected --states ≥ 0 and --horizon ≥ 1, found {args.states}, {args.horizon}")
     os.chdir(REPO)
     from hipode_pipeline.data.load import load_source
     from hipode_pipeline.files import write_json_atomic, write_text_atomic
@@ -160,7 +241,7 @@ def main(argv: list[str] | None = None) -> None:
     sources = {i: load_source(i, datasets_root()) for i in ids}
     start = time.time()
     with torch_threads(1):
-        rows = [probe(f, configs[f], sources) for f in folders]
+        rows = [probe(f, configs[f], sources, args.states, args.horizon) for f in folders]
     rows.sort(key=lambda r: (r["arm"], r["seed"]))
     out = args.folder / "report" / "td3bc"
     out.mkdir(parents=True, exist_ok=True)

@@ -17,7 +17,7 @@ import mujoco
 import numpy as np
 
 from hipode_pipeline.envs import ADROIT_ID_PREFIX, env_family
-from hipode_pipeline.errors import DataFormatError, MissingExtraError, UnsafeEnvError
+from hipode_pipeline.errors import DataFormatError, HipodeError, MissingExtraError, UnsafeEnvError
 
 # only environments implemented by gymnasium itself, or gymnasium-robotics' Adroit hands (the
 # `adroit` extra), are ever constructed
@@ -187,6 +187,55 @@ def step_from_observations(
     if progress_callback is not None:
         progress_callback(rows)
     return next_observations, rewards, terminated
+
+
+def policy_returns(
+    env_id: str,
+    observations: np.ndarray,
+    policy,
+    *,
+    horizon: int,
+    discount: float,
+    origin: str | Path | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The discounted return of `policy` from each observation's state, by running it in the
+    simulator for up to `horizon` steps (a fall ends the return; the time limit does not apply).
+
+    `policy` maps (n, obs_dim) observations to (n, act_dim) actions, called once per step for
+    every start still running. Returns the returns (M,) float64 and the steps run (M,) int.
+    """
+    observations = np.asarray(observations, dtype=np.float64)
+    if horizon < 1 or not 0.0 < discount <= 1.0:
+        raise HipodeError(
+            f"policy_returns: expected horizon ≥ 1 and discount in (0, 1], found "
+            f"{horizon} and {discount}"
+        )
+    envs = [make_restorable_env(env_id, origin) for _ in range(len(observations))]
+    try:
+        raw = [env.unwrapped for env in envs]  # no time limit between restored states
+        for env, observation in zip(envs, observations, strict=True):
+            set_state_from_observation(env, observation)
+        low, high = raw[0].action_space.low, raw[0].action_space.high
+        current = observations.astype(np.float32)
+        returns = np.zeros(len(envs))
+        steps = np.zeros(len(envs), dtype=np.int64)
+        active = np.ones(len(envs), dtype=bool)
+        weight = 1.0
+        for _ in range(horizon):
+            running = np.flatnonzero(active)
+            if not len(running):
+                break
+            actions = np.clip(np.asarray(policy(current[running]), np.float64), low, high)
+            for i, action in zip(running, actions, strict=True):
+                current[i], reward, terminated, _, _ = raw[i].step(action)
+                returns[i] += weight * float(reward)
+                steps[i] += 1
+                active[i] = not terminated
+            weight *= discount
+    finally:
+        for env in envs:
+            env.close()
+    return returns, steps
 
 
 def clipped_velocity_rows(env_id: str, observations: np.ndarray) -> np.ndarray:

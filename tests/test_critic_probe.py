@@ -1,5 +1,6 @@
 """bench/critic_probe.py: a finished run's critic read back from its checkpoint and valued at
-the source's falls (the smaller twin Q, as TD3 bootstraps); a run of another source refused."""
+the source's falls (the smaller twin Q, as TD3 bootstraps) and against its own policy's return
+in the simulator; a run of another source refused."""
 
 from __future__ import annotations
 
@@ -64,7 +65,7 @@ def test_falls_are_valued_by_the_smaller_twin(tmp_path):
     folders = critic_probe.run_folders(tmp_path)
     assert [f.parent.name for f in folders] == ["hipode"]
     sources = {"local/hopper/medium-replay-v0": (data, SimpleNamespace(sha256="ab" * 32))}
-    row = critic_probe.probe(folders[0], config, sources)
+    row = critic_probe.probe(folders[0], config, sources, states=0)
     falls = data.rewards[data.terminals]
     assert (row["arm"], row["seed"], row["rows"], row["falls"]) == ("hipode", 3, 60, 3)
     assert row["q_mean"] == pytest.approx(5.0) and row["q_falls"] == pytest.approx(5.0)
@@ -81,6 +82,7 @@ def test_falls_are_valued_by_the_smaller_twin(tmp_path):
     assert row["q_before_falls"] == pytest.approx(5.0)
     assert row["return_to_fall"] == pytest.approx(np.mean(expected), rel=1e-5)
     assert "| hipode | 3 |" in critic_probe.table([row])
+    assert "q_policy" not in row and "return of π" not in critic_probe.table([row])
 
 
 def test_a_run_of_another_source_is_refused(tmp_path):
@@ -88,4 +90,58 @@ def test_a_run_of_another_source_is_refused(tmp_path):
     config = finished_run(tmp_path / "run", data, "cd" * 32, 1.0, 1.0)
     sources = {"local/hopper/medium-replay-v0": (data, SimpleNamespace(sha256="ab" * 32))}
     with pytest.raises(DataFormatError, match="source_sha256"):
-        critic_probe.probe(tmp_path / "run", config, sources)
+        critic_probe.probe(tmp_path / "run", config, sources, states=0)
+
+
+def hopper_source(steps=120, seed=2) -> Transitions:
+    """Real Hopper-v5 rows (random actions), so that the simulator can restore their states."""
+    import gymnasium as gym
+
+    env = gym.make("Hopper-v5")
+    rng = np.random.default_rng(seed)
+    observation, _ = env.reset(seed=seed)
+    rows = []
+    for t in range(steps):
+        action = rng.uniform(-1, 1, 3).astype(np.float32)
+        next_observation, reward, terminated, truncated, _ = env.step(action)
+        rows.append((observation, action, reward, next_observation, terminated, truncated))
+        observation = next_observation
+        if terminated or truncated:
+            observation, _ = env.reset(seed=seed + t + 1)
+    env.close()
+    obs, act, rew, nxt, term, trunc = (np.array(c) for c in zip(*rows, strict=True))
+    return Transitions(
+        observations=obs.astype(np.float32),
+        actions=act,
+        rewards=rew.astype(np.float32),
+        next_observations=nxt.astype(np.float32),
+        terminals=term,
+        timeouts=trunc,
+    )
+
+
+def test_the_critic_is_checked_against_its_policys_return_in_the_simulator(tmp_path):
+    from hipode_pipeline.simulator import clipped_velocity_rows, policy_returns
+
+    data = hopper_source()
+    config = finished_run(tmp_path / "eta0" / "td3bc-seed3", data, "ab" * 32, 40.0, 30.0)
+    config["env_id"] = "Hopper-v5"
+    sources = {"local/hopper/medium-replay-v0": (data, SimpleNamespace(sha256="ab" * 32))}
+    row = critic_probe.probe(tmp_path / "eta0" / "td3bc-seed3", config, sources, 6, 25)
+    starts = critic_probe.start_states(data, "Hopper-v5", 6)
+    assert (
+        len(starts) == 6 and not clipped_velocity_rows("Hopper-v5", data.observations[starts]).any()
+    )
+    assert np.array_equal(starts, critic_probe.start_states(data, "Hopper-v5", 6))  # seeded
+    # the run's own actor, read back from its checkpoint, run from those states
+    model = TD3BC(data.obs_dim, data.act_dim, seed=3)
+    model.fit_statistics(data)
+    returns, steps = policy_returns(
+        "Hopper-v5", data.observations[starts], model.act, horizon=25, discount=0.99
+    )
+    assert (row["states"], row["horizon"]) == (6, 25)
+    assert row["q_policy"] == pytest.approx(30.0)  # the smaller twin at (s, π(s))
+    assert row["return_policy"] == pytest.approx(float(returns.mean()))
+    assert row["q_policy_overestimate"] == pytest.approx(30.0 - float(returns.mean()))
+    assert row["falls_within_horizon"] == int((steps < 25).sum())
+    assert "| eta0 | 3 | 30.0 |" in critic_probe.table([row])

@@ -11,6 +11,7 @@ from hipode_pipeline.simulator import (
     check_env_id,
     clipped_velocity_rows,
     make_env_safely,
+    policy_returns,
     set_state_from_observation,
     step_from_observations,
 )
@@ -120,3 +121,41 @@ def test_unsafe_env_ids_are_refused_without_import(foreign_module):
     env = make_env_safely("Hopper-v5")
     assert env.spec.id == "Hopper-v5"
     env.close()
+
+
+def test_policy_returns_replay_a_real_episode_from_its_states():
+    env_id, horizon, discount = "Hopper-v5", 12, 0.9
+    weights = np.random.default_rng(7).normal(0, 0.6, (11, 3))
+
+    def policy(observations):  # deterministic: the same action at the same state
+        return np.tanh(np.asarray(observations, np.float64) @ weights)
+
+    env = gym.make(env_id)
+    observation, _ = env.reset(seed=4)
+    observations, rewards, ends = [], [], []
+    for _ in range(200):
+        observations.append(observation)
+        observation, reward, terminated, truncated, _ = env.step(policy(observation[None])[0])
+        rewards.append(reward)
+        ends.append(terminated)
+        if terminated or truncated:
+            break
+    env.close()
+    assert ends[-1]  # the episode falls, so some starts' returns end at the fall
+    observations = np.array(observations)
+    starts = [
+        t
+        for t in range(len(observations))
+        if not clipped_velocity_rows(env_id, observations[t : t + 1])[0]
+    ]
+    returns, steps = policy_returns(
+        env_id, observations[starts], policy, horizon=horizon, discount=discount
+    )
+    for i, t in enumerate(starts):
+        span = rewards[t : t + horizon]
+        assert steps[i] == len(span)
+        expected = sum(discount**k * r for k, r in enumerate(span))
+        assert returns[i] == pytest.approx(expected, rel=1e-6, abs=1e-6)
+    assert steps.min() < horizon == steps.max()  # starts near the fall stop there
+    with pytest.raises(HipodeError, match="horizon"):
+        policy_returns(env_id, observations[:1], policy, horizon=0, discount=0.9)
