@@ -114,6 +114,8 @@ def policy_value_check(model, data, env_id: str, rows, horizon: int, discount: f
     """Q(s, π(s)) at the source rows `rows` against π's discounted return from s."""
     from hipode_pipeline.simulator import policy_returns
 
+    if not len(rows):
+        return {}
     observations = data.observations[rows]
     actions = model.act(observations)
     q = critic_values(model, observations, actions)

@@ -22,9 +22,10 @@ from rich.progress import (
 from rich.table import Table
 from rich.text import Text
 
-# a task field: its own estimate of the seconds left, for tasks whose steps are too slow and
-# uneven for rich's estimate (the speed over the last 30 s) to say anything
-ETA_FIELD = "eta_s"
+# a task field: when (time.monotonic()) the task expects to finish, or None for not yet known;
+# for tasks whose steps are too slow and uneven for rich's estimate (the speed over the last
+# 30 s) to say anything. A deadline, so that the time left counts down between updates
+ETA_FIELD = "finish_at"
 
 # width off a terminal (logs, pipes, CI) unless $COLUMNS says otherwise
 LOG_WIDTH = 160
@@ -107,19 +108,22 @@ class LineProgress(Progress):
 
 
 def time_remaining(task: Task) -> float | None:
-    """The task's own estimate of the seconds left where it gives one, else rich's."""
-    if ETA_FIELD in task.fields:
-        return task.fields[ETA_FIELD]
-    return task.time_remaining
+    """Seconds left: to the task's own deadline where it gives one, else rich's estimate."""
+    if ETA_FIELD not in task.fields:
+        return task.time_remaining
+    finish_at = task.fields[ETA_FIELD]
+    return None if finish_at is None else max(0.0, finish_at - time.monotonic())
 
 
 class RemainingColumn(TimeRemainingColumn):
     """rich's time-remaining column, showing the task's own estimate where it gives one."""
 
+    max_refresh = None  # rich caches a render by its own clock; ours counts down on every one
+
     def render(self, task: Task) -> Text:
         if ETA_FIELD not in task.fields:
             return super().render(task)
-        eta = task.fields[ETA_FIELD]
+        eta = time_remaining(task)
         return Text("-:--:--" if eta is None else _clock(eta), style="progress.remaining")
 
 
@@ -131,7 +135,8 @@ def _clock(seconds: float) -> str:
 
 def progress(*, disable: bool = False) -> Progress:
     """A progress display with count, rate and ETA; task fields `rate` and `info` show extras,
-    and `eta_s` (seconds, or None for not yet known) replaces rich's estimate of the time left.
+    and `finish_at` (a time.monotonic() deadline, or None for not yet known) replaces rich's
+    estimate of the time left.
 
     Off a terminal, or with $HIPODE_PROGRESS_LABEL set, it prints plain lines instead (every
     $HIPODE_PROGRESS_EVERY seconds, 30 by default, led by the label), since a live display

@@ -203,6 +203,8 @@ def policy_returns(
 
     `policy` maps (n, obs_dim) observations to (n, act_dim) actions, called once per step for
     every start still running. Returns the returns (M,) float64 and the steps run (M,) int.
+    A start whose velocities sit at the env's clipping bound (`clipped_velocity_rows`) is not
+    restored exactly; leave those out where exact returns matter.
     """
     observations = np.asarray(observations, dtype=np.float64)
     if horizon < 1 or not 0.0 < discount <= 1.0:
@@ -210,13 +212,15 @@ def policy_returns(
             f"policy_returns: expected horizon ≥ 1 and discount in (0, 1], found "
             f"{horizon} and {discount}"
         )
+    if not len(observations):
+        return np.zeros(0), np.zeros(0, dtype=np.int64)
     envs = [make_restorable_env(env_id, origin) for _ in range(len(observations))]
     try:
         raw = [env.unwrapped for env in envs]  # no time limit between restored states
         for env, observation in zip(envs, observations, strict=True):
             set_state_from_observation(env, observation)
         low, high = raw[0].action_space.low, raw[0].action_space.high
-        current = observations.astype(np.float32)
+        current = observations.astype(np.float32)  # what a policy sees: float32, as stored
         returns = np.zeros(len(envs))
         steps = np.zeros(len(envs), dtype=np.int64)
         active = np.ones(len(envs), dtype=bool)
@@ -225,6 +229,7 @@ def policy_returns(
             running = np.flatnonzero(active)
             if not len(running):
                 break
+            # the env charges control cost on the action as given: keep it inside the limits
             actions = np.clip(np.asarray(policy(current[running]), np.float64), low, high)
             for i, action in zip(running, actions, strict=True):
                 current[i], reward, terminated, _, _ = raw[i].step(action)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 from hipode_pipeline import console
 
 INFO = "kept 95,232/95,232  median e 0.033 (z-scored units)"
@@ -52,20 +54,25 @@ def test_progress_lines_are_spaced_in_time(monkeypatch, capsys):
     assert lines == [lines[-1]] and lines[-1].startswith("train: 1,000/1,000")
 
 
-def test_a_task_can_give_its_own_time_left(monkeypatch, capsys):
+def test_a_task_can_give_its_own_finishing_time(monkeypatch, capsys):
     from rich.console import Console
 
     monkeypatch.setenv(console.LINE_EVERY_ENV, "0")
     with console.progress() as prog:
-        bar = prog.add_task("sweep runs", total=10, rate="", info="", eta_s=None)
+        bar = prog.add_task("sweep runs", total=10, rate="", info="", finish_at=None)
         prog.update(bar, advance=1)  # not yet known: no ETA at all
-        prog.update(bar, advance=1, eta_s=2 * 3600 + 5 * 60)
+        prog.update(bar, advance=1, finish_at=time.monotonic() + 2 * 3600 + 5 * 60 + 0.5)
     lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith("sweep")]
     assert "ETA" not in lines[0] and "ETA 2:05:00" in lines[1]
-    # the live display's column shows the same estimate
+    # the live display's column counts down to the same deadline between updates
+    clock = [100.0]
+    monkeypatch.setattr(console.time, "monotonic", lambda: clock[0])
     screen = Console(record=True, width=200, force_terminal=True)
     live = console.Progress(console.RemainingColumn(), console=screen, auto_refresh=False)
     with live:
-        task = live.add_task("x", total=10, eta_s=125.0)
+        live.add_task("x", total=10, finish_at=225.0)
         live.refresh()
-    assert "0:02:05" in screen.export_text()
+        clock[0] += 60.0
+        live.refresh()
+    text = screen.export_text()
+    assert "0:02:05" in text and "0:01:05" in text

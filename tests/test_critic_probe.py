@@ -124,24 +124,42 @@ def test_the_critic_is_checked_against_its_policys_return_in_the_simulator(tmp_p
     from hipode_pipeline.simulator import clipped_velocity_rows, policy_returns
 
     data = hopper_source()
-    config = finished_run(tmp_path / "eta0" / "td3bc-seed3", data, "ab" * 32, 40.0, 30.0)
-    config["env_id"] = "Hopper-v5"
+    # a trained-looking run: actor and critics moved away from their initial weights, so a
+    # probe that rebuilt a fresh learner, or valued the data's actions, would be found out
+    model = TD3BC(data.obs_dim, data.act_dim, seed=3)
+    model.fit_statistics(data)
+    generator = torch.Generator().manual_seed(11)
+    with torch.no_grad():
+        for parameter in [*model.actor.parameters(), *model.critic.parameters()]:
+            parameter.add_(0.3 * torch.randn(parameter.shape, generator=generator))
+    folder = tmp_path / "eta0" / "td3bc-seed3"
+    folder.mkdir(parents=True)
+    save_checkpoint(folder / "checkpoint.pt", {"learner": model.seed_state(0)})
+    config = {
+        "seed": 3,
+        "source_id": "local/hopper/medium-replay-v0",
+        "source_sha256": "ab" * 32,
+        "env_id": "Hopper-v5",
+    }
     sources = {"local/hopper/medium-replay-v0": (data, SimpleNamespace(sha256="ab" * 32))}
-    row = critic_probe.probe(tmp_path / "eta0" / "td3bc-seed3", config, sources, 6, 25)
+    row = critic_probe.probe(folder, config, sources, 6, 25)
+
     starts = critic_probe.start_states(data, "Hopper-v5", 6)
     assert (
         len(starts) == 6 and not clipped_velocity_rows("Hopper-v5", data.observations[starts]).any()
     )
     assert np.array_equal(starts, critic_probe.start_states(data, "Hopper-v5", 6))  # seeded
-    # the run's own actor, read back from its checkpoint, run from those states
-    model = TD3BC(data.obs_dim, data.act_dim, seed=3)
-    model.fit_statistics(data)
-    returns, steps = policy_returns(
-        "Hopper-v5", data.observations[starts], model.act, horizon=25, discount=0.99
-    )
+    observations = data.observations[starts]
+    with torch.no_grad():
+        obs = model.normalize(torch.as_tensor(observations)).unsqueeze(0)
+        on_policy = torch.as_tensor(model.act(observations)).unsqueeze(0)
+        q = model.critic(obs, on_policy).amin(1)[0].numpy()
+        q_data = model.critic(obs, torch.as_tensor(data.actions[starts]).unsqueeze(0)).amin(1)
+    returns, steps = policy_returns("Hopper-v5", observations, model.act, horizon=25, discount=0.99)
     assert (row["states"], row["horizon"]) == (6, 25)
-    assert row["q_policy"] == pytest.approx(30.0)  # the smaller twin at (s, π(s))
+    assert row["q_policy"] == pytest.approx(float(q.mean()), rel=1e-5)
+    assert abs(float(q_data.mean()) - float(q.mean())) > 1e-3  # Q(s, π(s)), not Q(s, a)
     assert row["return_policy"] == pytest.approx(float(returns.mean()))
-    assert row["q_policy_overestimate"] == pytest.approx(30.0 - float(returns.mean()))
+    assert row["q_policy_overestimate"] == pytest.approx(float((q - returns).mean()), rel=1e-5)
     assert row["falls_within_horizon"] == int((steps < 25).sum())
-    assert "| eta0 | 3 | 30.0 |" in critic_probe.table([row])
+    assert f"| eta0 | 3 | {row['q_policy']:.1f} |" in critic_probe.table([row])

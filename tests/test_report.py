@@ -11,6 +11,7 @@ import pytest
 from test_train_cli import TINY
 from typer.testing import CliRunner
 
+from hipode_pipeline import report as report_module
 from hipode_pipeline.cli import app
 from hipode_pipeline.errors import DataFormatError, SettingError
 from hipode_pipeline.report import build_report, find_runs, improvement, interval_estimates
@@ -107,13 +108,22 @@ def test_intervals_depend_on_their_own_scores_and_seed_only():
     first, first_pi = interval_estimates(x, 2000, 0), improvement(x, y, 2000, 0)
     np.random.seed(12345)  # what a caller, or another group, left in numpy's global stream
     np.random.random(17)
-    caller_next = np.random.get_state()[1].copy()
+    caller_state = np.random.get_state()
     again, again_pi = interval_estimates(x, 2000, 0), improvement(x, y, 2000, 0)
     assert again["mean_ci"] == first["mean_ci"] and again["iqm_ci"] == first["iqm_ci"]
     assert again_pi["ci"] == first_pi["ci"]
     assert interval_estimates(x, 2000, 1)["mean_ci"] != first["mean_ci"]  # the seed is used
-    # the caller's stream is given back as it was
-    assert np.array_equal(np.random.get_state()[1], caller_next)
+    # the caller's stream is given back where it was, also when the bootstrap fails
+    with pytest.raises(ZeroDivisionError):
+        report_module._bootstrap(x.reshape(-1, 1), lambda scores: 1 / 0, 200, 0)
+    np.random.set_state(caller_state)
+    expected = np.random.random(3)
+    np.random.set_state(caller_state)
+    interval_estimates(x, 2000, 0)
+    improvement(x, y, 2000, 0)
+    with pytest.raises(ZeroDivisionError):
+        report_module._bootstrap(x.reshape(-1, 1), lambda scores: 1 / 0, 200, 0)
+    assert np.array_equal(np.random.random(3), expected)
 
 
 def test_same_seed_twice_in_a_group_is_refused(tmp_path, two_arms):

@@ -159,3 +159,5 @@ def test_policy_returns_replay_a_real_episode_from_its_states():
     assert steps.min() < horizon == steps.max()  # starts near the fall stop there
     with pytest.raises(HipodeError, match="horizon"):
         policy_returns(env_id, observations[:1], policy, horizon=0, discount=0.9)
+    none, no_steps = policy_returns(env_id, observations[:0], policy, horizon=5, discount=0.9)
+    assert none.shape == no_steps.shape == (0,)

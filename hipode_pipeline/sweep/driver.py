@@ -30,7 +30,7 @@ from hipode_pipeline.sweep.plan import (
     run_units,
 )
 from hipode_pipeline.sweep.report import QualityReport, curve_plot, markdown, summarize
-from hipode_pipeline.sweep.worker import FINISHED_EARLIER
+from hipode_pipeline.sweep.worker import FINISHED_EARLIER, finished_scores
 
 
 def results_dir(config: SweepConfig) -> Path:
@@ -81,27 +81,37 @@ def command_line(config: SweepConfig) -> str:
 
 
 class Pace:
-    """The sweep's throughput and time left, from the runs this call trained: runs read back
-    from an earlier call arrive at once and would make any rate over them meaningless."""
+    """The sweep's throughput and finishing time, from the runs this call trained: runs read
+    back from an earlier call arrive at once and would make any rate over them meaningless.
 
-    def __init__(self, total: int):
-        self.total, self.done, self.trained = total, 0, 0
-        self.clock = time.perf_counter()
+    With N workers the first estimate comes when the first run ends, after about a run's time,
+    and is high until N runs have ended; a run resumed from its checkpoint counts as a whole one.
+    """
+
+    def __init__(self, to_train: int):
+        self.to_train, self.trained = to_train, 0
+        self.clock = time.monotonic()
 
     def add(self, record: dict) -> None:
-        self.done += 1
         self.trained += record["status"] != FINISHED_EARLIER
 
     def fields(self) -> dict[str, object]:
-        """The progress bar's `rate` and `eta_s`: None until a run trained here has finished."""
-        elapsed = time.perf_counter() - self.clock
-        if not self.trained or elapsed <= 0:
-            return {"rate": "", console.ETA_FIELD: None if self.done < self.total else 0.0}
-        per_run = elapsed / self.trained  # with N workers, about a run's time / N
+        """The progress bar's `rate` and `finish_at`: None until a run trained here has ended."""
+        now = time.monotonic()
+        if self.trained >= self.to_train:
+            return {"rate": self.rate(now), console.ETA_FIELD: now}
+        if not self.trained or now <= self.clock:
+            return {"rate": "", console.ETA_FIELD: None}
+        per_run = (now - self.clock) / self.trained  # with N workers, about a run's time / N
         return {
-            "rate": f"{3600 / per_run:.1f} runs/h",
-            console.ETA_FIELD: (self.total - self.done) * per_run,
+            "rate": self.rate(now),
+            console.ETA_FIELD: now + (self.to_train - self.trained) * per_run,
         }
+
+    def rate(self, now: float) -> str:
+        if not self.trained or now <= self.clock:
+            return ""
+        return f"{3600 * self.trained / (now - self.clock):.1f} runs/h"
 
 
 def run_sweep(config: SweepConfig) -> QualityReport:
@@ -141,7 +151,8 @@ def run_sweep(config: SweepConfig) -> QualityReport:
             executed = run_local(units, config.workers)
         else:
             executed = run_ray(units, config.address, config.workers)
-        pace = Pace(len(specs))
+        unfinished = sum(finished_scores(spec) is None for spec in specs)
+        pace = Pace(0 if config.report_only else unfinished)
         for record in executed:
             key = keys[record["learner"], record["arm"]]
             runs.append({**record, "key": key, "run_dir": display_path(record["run_dir"])})
@@ -152,6 +163,8 @@ def run_sweep(config: SweepConfig) -> QualityReport:
                 info=f"{record['task']} {key} seed {record['seed']}: {record['final_score']:.1f}",
                 **pace.fields(),
             )
+        # runs left out (--report-only, unfinished) never arrive: the bar ends at what did
+        prog.update(bar, total=len(runs))
     if not runs:
         raise HipodeError(f"{config.out}: no finished runs at {steps} steps to report")
     report = QualityReport(
