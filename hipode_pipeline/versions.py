@@ -25,9 +25,10 @@ ARTIFACT_CODE = (*GENERATOR_CODE, "generate.py", "envs.py")
 ROLLOUT_CODE = (*ARTIFACT_CODE, "rollouts.py")
 
 
-def package_versions() -> dict[str, str | None]:
-    """Versions of this package, its numeric stack, Python and the git commit (None if unknown)."""
-    versions: dict[str, str | None] = {
+def package_versions() -> dict[str, str | bool | None]:
+    """Versions of this package, its numeric stack, Python, the git commit and whether the
+    package's files differ from it (None if unknown)."""
+    versions: dict[str, str | bool | None] = {
         "hipode_pipeline": hipode_pipeline.__version__,
         "python": platform.python_version(),
     }
@@ -37,6 +38,7 @@ def package_versions() -> dict[str, str | None]:
         except metadata.PackageNotFoundError:
             versions[name] = None
     versions["git_commit"] = git_commit()
+    versions["git_modified"] = git_modified()
     return versions
 
 
@@ -54,6 +56,24 @@ def git_commit() -> str | None:
     except (OSError, subprocess.SubprocessError):
         return None
     return done.stdout.strip() or None if done.returncode == 0 else None
+
+
+def git_modified() -> bool | None:
+    """Whether the package's files in the checkout differ from HEAD (edited, added or removed,
+    untracked files included), so that the commit alone does not say what ran; None outside a
+    git checkout."""
+    try:
+        done = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=normal", "--", "."],
+            cwd=PACKAGE_DIR,
+            capture_output=True,
+            text=True,
+            timeout=5,
+            check=False,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return bool(done.stdout.strip()) if done.returncode == 0 else None
 
 
 def code_digest(parts: tuple[str, ...]) -> str:

@@ -1,0 +1,46 @@
+"""What every output records of the code that made it: the commit, and whether the package's
+files differ from it (the commit alone would then not say what ran)."""
+
+from __future__ import annotations
+
+import subprocess
+
+from hipode_pipeline import versions
+
+
+def git(folder, *args):
+    subprocess.run(
+        ["git", "-c", "user.email=t@t", "-c", "user.name=t", *args],
+        cwd=folder,
+        check=True,
+        capture_output=True,
+    )
+
+
+def test_modified_package_files_are_recorded(tmp_path, monkeypatch):
+    package = tmp_path / "repo" / "pkg"
+    package.mkdir(parents=True)
+    (package / "code.py").write_text("x = 1\n")
+    (tmp_path / "repo" / "notes.txt").write_text("outside the package\n")
+    git(tmp_path / "repo", "init", "-q")
+    git(tmp_path / "repo", "add", ".")
+    git(tmp_path / "repo", "commit", "-q", "-m", "c")
+    monkeypatch.setenv("GIT_CEILING_DIRECTORIES", str(tmp_path))  # no checkout above counts
+    monkeypatch.setattr(versions, "PACKAGE_DIR", package)
+    assert versions.git_modified() is False
+    (tmp_path / "repo" / "notes.txt").write_text("changed, but not the package\n")
+    assert versions.git_modified() is False
+    (package / "code.py").write_text("x = 2\n")
+    assert versions.git_modified() is True
+    git(tmp_path / "repo", "checkout", "-q", "--", "pkg")
+    (package / "new.py").write_text("y = 1\n")  # untracked code runs too
+    assert versions.git_modified() is True
+    monkeypatch.setattr(versions, "PACKAGE_DIR", tmp_path / "elsewhere")
+    (tmp_path / "elsewhere").mkdir()
+    assert versions.git_modified() is None  # not a checkout
+
+
+def test_every_output_records_it():
+    recorded = versions.package_versions()
+    assert "git_commit" in recorded and "git_modified" in recorded
+    assert recorded["git_modified"] in (True, False, None)
