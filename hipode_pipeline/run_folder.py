@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import re
 import shutil
 from dataclasses import asdict, dataclass, field, fields
@@ -30,6 +31,7 @@ from hipode_pipeline.files import (
     write_json_atomic,
     write_text_atomic,
 )
+from hipode_pipeline.machine import cpu_name, utc_now
 
 BEST_LABEL = "best of all evaluations (optimistic: picked on the evaluation episodes themselves)"
 # config.json keys that make a run a different experiment; the seed is in the folder name
@@ -66,6 +68,10 @@ class TrainResult:
     env_id: str | None = None  # the env the policy was evaluated in
     data_identity: dict[str, Any] = field(default_factory=dict)  # source sha, artifact, η
     finished_earlier: bool = False  # read back from scores.json instead of trained now
+    # when and where the last session of the run finished: its figures come with their machine
+    finished_utc: str | None = None
+    cpu: str | None = None
+    load_average: list[float] | None = None  # 1, 5 and 15 minutes, at the finish
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -131,6 +137,9 @@ def finish_run(result: TrainResult, eval_episodes: int) -> TrainResult:
         "label": "last evaluation (the result)",
     }
     result.best = {**best, "label": BEST_LABEL}
+    result.finished_utc = utc_now()
+    result.cpu = cpu_name()
+    result.load_average = [round(x, 2) for x in os.getloadavg()]
     write_json_atomic(Path(result.run_dir) / "scores.json", result.to_dict())
     return result
 

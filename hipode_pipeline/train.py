@@ -34,6 +34,7 @@ from hipode_pipeline.generate import MAX_ETA
 from hipode_pipeline.learners import learner_class
 from hipode_pipeline.learners.base import Learner, fast_bf16
 from hipode_pipeline.loggers import check_logger, make_logger
+from hipode_pipeline.machine import cpu_name, utc_now
 from hipode_pipeline.merge import MergedData, load_merged
 from hipode_pipeline.paths import stages_dir
 from hipode_pipeline.replay import MIXING_MODES, MixedReplay
@@ -565,7 +566,12 @@ def _train_group(
         # on the group, so a resume in another group continues close to, not exactly as, before
         seed_run.config["sessions"] = [
             *_previous_sessions(seed_run.run_dir, resume_step),
-            {"from_step": resume_step, "seeds_trained_together": seeds},
+            {
+                "from_step": resume_step,
+                "seeds_trained_together": seeds,
+                "started_utc": utc_now(),
+                "cpu": cpu_name(),
+            },
         ]
         truncate_metrics(seed_run.run_dir / "metrics.jsonl", resume_step)
         write_json_atomic(seed_run.run_dir / "config.json", seed_run.config)

@@ -4,6 +4,7 @@ alone writes, resumable per seed, matching separate runs."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -13,6 +14,7 @@ from typer.testing import CliRunner
 
 import hipode_pipeline.train as train_module
 from hipode_pipeline.cli import app
+from hipode_pipeline.machine import cpu_name
 from hipode_pipeline.train import run_training, train_seeds
 
 COMMON = dict(steps=20, eval_every=10, eval_episodes=2, batch_size=32, show_progress=False)
@@ -86,10 +88,17 @@ def test_interrupted_seeds_resume_exactly_and_groups_form_by_step(tmp_path, tiny
     resumed = train_seeds("hopper-m-r", seeds=[0, 1, 2], out_dir=tmp_path / "b", **data)
     assert [r.resumed_from for r in resumed] == [10, 10, 0]
     sessions = json.loads((Path(resumed[0].run_dir) / "config.json").read_text())["sessions"]
-    assert sessions == [
-        {"from_step": 0, "seeds_trained_together": [0, 1]},
-        {"from_step": 10, "seeds_trained_together": [0, 1]},
+    assert [(s["from_step"], s["seeds_trained_together"]) for s in sessions] == [
+        (0, [0, 1]),
+        (10, [0, 1]),
     ]
+    # each session says when and on which CPU it ran; the finish is in scores.json
+    assert all(re.fullmatch(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d", s["started_utc"]) for s in sessions)
+    assert all(s["cpu"] == cpu_name() for s in sessions)
+    assert sessions[0]["started_utc"] <= sessions[1]["started_utc"]
+    scores = json.loads((Path(resumed[0].run_dir) / "scores.json").read_text())
+    assert scores["finished_utc"] >= sessions[1]["started_utc"]
+    assert scores["cpu"] == cpu_name() and len(scores["load_average"]) == 3
     assert all(r.steps == 20 for r in resumed)
     for ref, got in zip(reference, resumed[:2], strict=True):
         assert got.evaluations == ref.evaluations

@@ -18,9 +18,9 @@ from pathlib import Path
 from hipode_pipeline import console
 from hipode_pipeline.errors import HipodeError, SettingError
 from hipode_pipeline.files import display_path, write_json_atomic, write_text_atomic
+from hipode_pipeline.machine import LoadSampler
 from hipode_pipeline.paths import use_datasets_root
 from hipode_pipeline.sweep.engines import read_finished, run_local, run_ray
-from hipode_pipeline.sweep.machine import LoadSampler
 from hipode_pipeline.sweep.plan import (
     ENGINES,
     SweepConfig,

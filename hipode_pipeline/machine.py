@@ -9,6 +9,7 @@ import os
 import platform
 import statistics
 import threading
+from datetime import UTC, datetime
 from pathlib import Path
 
 
@@ -21,6 +22,11 @@ def cpu_name() -> str:
     except OSError:
         pass
     return platform.processor() or platform.machine()
+
+
+def utc_now() -> str:
+    """The current time in UTC to the second, as records and reports print it."""
+    return datetime.now(UTC).strftime("%Y-%m-%d %H:%M:%S")
 
 
 def load_average() -> str:
