@@ -17,6 +17,7 @@ and the report pools sources as strata, each run paired with the baseline on its
     python bench/evidence.py sweep hopper-m-r --seeds 0-4 --report-only  # its quality.md
     python bench/evidence.py report                                    # the pooled tables
     python bench/evidence.py report --by-source                        # one row per source
+    python bench/evidence.py report --by-stage-one-seed                # one row per artifact
 """
 
 from __future__ import annotations
@@ -85,17 +86,22 @@ def sweep(args: argparse.Namespace) -> list[str]:
 
 
 def report(args: argparse.Namespace) -> list[str]:
-    # per source: whether a finding holds on each dataset, not only pooled over them
-    by_source = args.by_source
+    by, out = "task,learner,augmentation", REPORT
+    if args.by_source or args.by_stage_one_seed:
+        # per source: whether a finding holds on each dataset, not only pooled over them
+        by, out = by + ",source_sha256", REPORT / "by-source"
+    if args.by_stage_one_seed:
+        # per artifact: a source's artifacts differ by their stage-one seed alone
+        by, out = by + ",artifact_seed", REPORT / "by-stage-one-seed"
     return [
         "report",
         str(RUNS),
         "--by",
-        "task,learner,augmentation" + (",source_sha256" if by_source else ""),
+        by,
         "--compare",
         "augmentation=none",
         "--out",
-        str(REPORT / "by-source" if by_source else REPORT),
+        str(out),
         "--force",
     ]
 
@@ -114,6 +120,11 @@ def main_parser() -> argparse.ArgumentParser:
     pooled = commands.add_parser("report", help="The pooled report over every committed run.")
     pooled.add_argument(
         "--by-source", action="store_true", help="One group per source (report/by-source/)."
+    )
+    pooled.add_argument(
+        "--by-stage-one-seed",
+        action="store_true",
+        help="One group per source and artifact (report/by-stage-one-seed/).",
     )
     return parser
 

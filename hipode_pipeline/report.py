@@ -87,7 +87,12 @@ class Group:
 
     @property
     def label(self) -> str:
-        return " ".join(f"{k}={v}" for k, v in self.key.items())
+        return " ".join(f"{k}={_shown(v)}" for k, v in self.key.items())
+
+
+def _shown(value: Any) -> str:
+    """A group key's value as tables print it; None (e.g. no stage-one seed) as '-'."""
+    return "-" if value is None else str(value)
 
 
 def find_runs(paths: Sequence[Path]) -> list[Run]:
@@ -143,6 +148,9 @@ def read_run(folder: Path) -> Run:
         **{k: v for k, v in data.items() if isinstance(v, str | int | float | bool)},
     }
     keys["augmentation"] = augmentation(keys.get("data"), identity)
+    # a run on the source alone has no stage-one seed: None, so it can still be grouped by it
+    if keys.get("data") == "source" or "artifact_seed" not in keys:
+        keys["artifact_seed"] = None
     return Run(folder, keys, steps, scores)
 
 
@@ -323,7 +331,7 @@ def aggregate_over_tasks(comparisons: list[dict[str, Any]], by: tuple[str, ...])
     rows = []
     for key, entries in merged.items():
         row: dict[str, Any] = {
-            "arm": " ".join(f"{k}={v}" for k, v in key),
+            "arm": " ".join(f"{k}={_shown(v)}" for k, v in key),
             "tasks": [entry["key"]["task"] for entry in entries],
             "measures": {},
         }
@@ -340,6 +348,19 @@ def aggregate_over_tasks(comparisons: list[dict[str, Any]], by: tuple[str, ...])
             }
         rows.append(row)
     return rows
+
+
+def baseline_of(group: Group, baselines: list[Group], keys: list[str]) -> Group | None:
+    """The baseline group with the same `keys` as `group`; failing that, the one that matches
+    where it has a value: the source alone has no stage-one seed, so grouping the arms by
+    artifact_seed pairs each of them with the one baseline."""
+    for exact in (True, False):
+        for base in baselines:
+            if all(
+                base.key[k] == group.key[k] or (not exact and base.key[k] is None) for k in keys
+            ):
+                return base
+    return None
 
 
 def _without_samples(entries: list[dict[str, Any]]) -> None:
@@ -385,17 +406,13 @@ def build_report(
     comparisons = []
     if compare is not None:
         key, value = compare
-        baselines = {
-            tuple((k2, g.key[k2]) for k2 in by if k2 != key): g
-            for g in groups
-            if str(g.key[key]) == value
-        }
+        baselines = [g for g in groups if str(g.key[key]) == value]
         if not baselines:
             raise SettingError(f"--compare {key}={value}: no group has {key} = {value!r}")
         for group in groups:
             if str(group.key[key]) == value:
                 continue
-            base = baselines.get(tuple((k2, group.key[k2]) for k2 in by if k2 != key))
+            base = baseline_of(group, baselines, [k2 for k2 in by if k2 != key])
             if base is None:
                 continue
             entry: dict[str, Any] = {
@@ -472,7 +489,7 @@ def table_rows(report: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
         columns += [f"{text}: IQM [95% CI]", f"{text}: mean [95% CI]"]
     rows = []
     for group in report["groups"]:
-        row = [str(group[k]) for k in by] + [_replicates(group)]
+        row = [_shown(group[k]) for k in by] + [_replicates(group)]
         for name in MEASURES:
             m = group["measures"][name]
             row += [_interval(m, "iqm"), _interval(m, "mean")]
@@ -593,7 +610,7 @@ def latex(report: dict[str, Any]) -> str:
         "\\midrule",
     ]
     for group in report["groups"]:
-        cells = [_tex(str(group[k])) for k in by]
+        cells = [_tex(_shown(group[k])) for k in by]
         for name in MEASURES:
             m = group["measures"][name]
             cells.append(f"{m['iqm']:.1f} [{m['iqm_ci'][0]:.1f}, {m['iqm_ci'][1]:.1f}]")
@@ -618,7 +635,7 @@ def plot_curves(report: dict[str, Any], path: Path) -> None:
     figure, axes = plt.subplots(figsize=(7.2, 4.8), dpi=120)
     for index, group in enumerate(report["groups"]):
         curve, color = group["curve"], f"C{index % 10}"
-        label = " ".join(str(group[k]) for k in report["by"]) + f" ({group['n_runs']} runs)"
+        label = " ".join(_shown(group[k]) for k in report["by"]) + f" ({group['n_runs']} runs)"
         axes.plot(curve["steps"], curve["mean"], color=color, label=label)
         axes.fill_between(curve["steps"], curve["ci_low"], curve["ci_high"], color=color, alpha=0.2)
     axes.set_xlabel("updates")

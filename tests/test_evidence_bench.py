@@ -42,3 +42,12 @@ def test_report_by_source_keeps_sources_apart():
     command = evidence.report(args)
     assert command[command.index("--by") + 1] == "task,learner,augmentation,source_sha256"
     assert command[command.index("--out") + 1] == str(Path("bench/evidence/report/by-source"))
+
+
+def test_report_by_stage_one_seed_splits_each_source_by_artifact():
+    args = evidence.main_parser().parse_args(["report", "--by-stage-one-seed"])
+    command = evidence.report(args)
+    expected = "task,learner,augmentation,source_sha256,artifact_seed"
+    assert command[command.index("--by") + 1] == expected
+    out = command[command.index("--out") + 1]
+    assert out == str(Path("bench/evidence/report/by-stage-one-seed"))

@@ -288,3 +288,31 @@ def test_report_on_real_training_runs(tmp_path, tiny_pair, monkeypatch):
     merged = json.loads(next((tmp_path / "runs").rglob("*merged*/scores.json")).read_text())
     assert merged["data_identity"]["artifact_path"] == "art.hdf5"
     assert merged["run_dir"].startswith("runs/hopper-m-r/")
+
+
+def test_arms_split_by_stage_one_seed_pair_with_the_one_baseline(pooled_arms):
+    runs = find_runs([pooled_arms])
+    by = (*POOLED, "artifact_seed")
+    report = build_report(runs, by=by, compare=("augmentation", "none"), reps=2000)
+    groups = {(g["augmentation"], g["artifact_seed"]): g for g in report["groups"]}
+    assert set(groups) == {
+        ("none", None),
+        *((a, s) for a in ("hipode", "model-rollouts") for s in (0, 1)),
+    }
+    assert groups[("none", None)]["n_runs"] == 3
+    diffs = {
+        (e["key"]["augmentation"], e["key"]["artifact_seed"]): e["measures"]["last"]
+        for e in report["comparisons"]
+    }
+    assert set(diffs) == set(groups) - {("none", None)}
+    for (arm, artifact_seed), measure in diffs.items():
+        expected = 2.0 if arm == "model-rollouts" else (10.0 if artifact_seed == 0 else -10.0)
+        paired = measure["paired_difference"]
+        assert paired["pairs"] == 3 and paired["artifact_seeds"] == [artifact_seed]
+        assert paired["mean"] == pytest.approx(expected)
+        assert paired["ci"] == pytest.approx([expected, expected])
+    # P(a run beats a baseline run), over 30, 40, 50 against 40, 50, 60 and 20, 30, 40
+    assert diffs[("hipode", 0)]["probability_of_improvement"]["probability"] == pytest.approx(7 / 9)
+    assert diffs[("hipode", 1)]["probability_of_improvement"]["probability"] == pytest.approx(2 / 9)
+    text = report_markdown(report)
+    assert "artifact_seed=-" in text and "| none | - |" in text
