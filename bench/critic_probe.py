@@ -38,6 +38,14 @@ BEFORE = 5  # rows before a fall whose critic values are compared with the retur
 STATES = 32  # source states per run at which the critic is compared with the policy's return
 HORIZON = 500  # steps of those returns: the discounted tail beyond is under 1 % at γ = 0.99
 STATES_SEED = 0  # which source states: the same for every run of a source
+FALL_KEYS = (
+    "q_falls",
+    "reward_falls",
+    "fall_overestimate",
+    "fall_overestimate_share",
+    "q_before_falls",
+    "return_to_fall",
+)
 
 
 def before_falls(data, discount: float):
@@ -156,10 +164,20 @@ def probe(
     model = learner(state, source.obs_dim, source.act_dim, str(checkpoint))
     q = critic_values(model, source.observations, source.actions)
     falls = source.terminals
-    q_falls, r_falls = float(q[falls].mean()), float(source.rewards[falls].mean())
     q_all = float(q.mean())
     discount = float(state["config"].get("discount", 0.99))
     rows, to_fall = before_falls(source, discount)
+    fall_values = {key: None for key in FALL_KEYS}  # a source without falls (HalfCheetah): none
+    if falls.any():
+        q_falls, r_falls = float(q[falls].mean()), float(source.rewards[falls].mean())
+        fall_values = {
+            "q_falls": q_falls,
+            "reward_falls": r_falls,
+            "fall_overestimate": q_falls - r_falls,
+            "fall_overestimate_share": (q_falls - r_falls) / q_all,
+            "q_before_falls": float(q[rows].mean()),
+            "return_to_fall": float(to_fall.mean()),
+        }
     check = {}
     if states:
         env_id = config["env_id"]
@@ -173,19 +191,33 @@ def probe(
         "rows": len(q),
         "falls": int(falls.sum()),
         "q_mean": q_all,
-        "q_falls": q_falls,
-        "reward_falls": r_falls,
-        "fall_overestimate": q_falls - r_falls,
-        "fall_overestimate_share": (q_falls - r_falls) / q_all,
         "rows_before_falls": len(rows),
-        "q_before_falls": float(q[rows].mean()),
-        "return_to_fall": float(to_fall.mean()),
+        **fall_values,
         **check,
     }
 
 
 def table(rows: list[dict]) -> str:
-    """The falls table, and the policy-value table where the rows have it."""
+    """The falls table (Q alone for runs whose source has no falls), and the policy-value table
+    where the rows have it."""
+    without = [r for r in rows if r["q_falls"] is None]
+    text = falls_table([r for r in rows if r["q_falls"] is not None])
+    if without:
+        text += (
+            "\nNo falls (terminal rows) in the source of these runs, so nothing to value at "
+            "falls:\n\n| arm | seed | step | Q, all source rows |\n|---|---|---|---|\n"
+        )
+        text += "".join(
+            f"| {r['arm']} | {r['seed']} | {r['step']:,} | {r['q_mean']:.1f} |\n" for r in without
+        )
+    return text + policy_table([r for r in rows if "q_policy" in r])
+
+
+def falls_table(rows: list[dict]) -> str:
+    """Q at the falls and the rows before them against their reward and return; empty without
+    rows."""
+    if not rows:
+        return ""
     head = (
         "| arm | seed | step | Q, all source rows | Q at falls | reward at falls | "
         f"Q − reward at falls | as a share of Q | Q, {BEFORE} rows before falls | "
@@ -198,7 +230,7 @@ def table(rows: list[dict]) -> str:
         f"{r['return_to_fall']:.1f} |\n"
         for r in rows
     )
-    return head + falls + policy_table([r for r in rows if "q_policy" in r])
+    return head + falls
 
 
 def policy_table(rows: list[dict]) -> str:

@@ -85,6 +85,24 @@ def test_falls_are_valued_by_the_smaller_twin(tmp_path):
     assert "q_policy" not in row and "return of π" not in critic_probe.table([row])
 
 
+def test_a_source_without_falls_gets_no_fall_values(tmp_path):
+    data = source()
+    data.terminals[:] = False  # HalfCheetah never falls
+    config = finished_run(
+        tmp_path / "halfcheetah-m-r" / "eta0" / "td3bc-seed3", data, "ab" * 32, 4.0, 6.0
+    )
+    sources = {"local/hopper/medium-replay-v0": (data, SimpleNamespace(sha256="ab" * 32))}
+    row = critic_probe.probe(
+        tmp_path / "halfcheetah-m-r" / "eta0" / "td3bc-seed3", config, sources, states=0
+    )
+    assert row["falls"] == 0 and row["rows_before_falls"] == 0
+    assert all(row[key] is None for key in critic_probe.FALL_KEYS)
+    assert row["q_mean"] == pytest.approx(4.0)
+    json.dumps(row, allow_nan=False)  # the record stays strict JSON: no NaN for missing falls
+    text = critic_probe.table([row])
+    assert "No falls" in text and "| eta0 | 3 | 0 | 4.0 |" in text and "nan" not in text
+
+
 def test_a_run_of_another_source_is_refused(tmp_path):
     data = source()
     config = finished_run(tmp_path / "run", data, "cd" * 32, 1.0, 1.0)
