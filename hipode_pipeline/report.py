@@ -625,23 +625,50 @@ def _tex(text: str) -> str:
     return text
 
 
+def curve_panels(report: dict[str, Any]) -> dict[str, list[tuple[str, dict[str, Any]]]]:
+    """The groups' curves per panel: one panel per task when the report groups by task (scores
+    of different tasks do not share a scale), each curve labelled by its other keys."""
+    per_task = "task" in report["by"] and len({g["task"] for g in report["groups"]}) > 1
+    keys = [k for k in report["by"] if not (per_task and k == "task")]
+    panels: dict[str, list[tuple[str, dict[str, Any]]]] = {}
+    for group in report["groups"]:
+        label = " ".join(_shown(group[k]) for k in keys) + f" ({group['n_runs']} runs)"
+        panels.setdefault(str(group["task"]) if per_task else "", []).append((label, group))
+    return panels
+
+
 def plot_curves(report: dict[str, Any], path: Path) -> None:
-    """Mean learning curve per group with its bootstrap 95 % CI band, as PNG."""
+    """Mean learning curve per group with its bootstrap 95 % CI band, as PNG; a panel per task,
+    an arm in the same colour in every panel."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    figure, axes = plt.subplots(figsize=(7.2, 4.8), dpi=120)
-    for index, group in enumerate(report["groups"]):
-        curve, color = group["curve"], f"C{index % 10}"
-        label = " ".join(_shown(group[k]) for k in report["by"]) + f" ({group['n_runs']} runs)"
-        axes.plot(curve["steps"], curve["mean"], color=color, label=label)
-        axes.fill_between(curve["steps"], curve["ci_low"], curve["ci_high"], color=color, alpha=0.2)
-    axes.set_xlabel("updates")
-    axes.set_ylabel("D4RL-normalized score")
-    axes.set_title("mean over runs; band: bootstrap 95% CI of the mean over runs")
-    axes.legend(fontsize=7)
+    panels = curve_panels(report)
+    columns = min(3, len(panels))
+    rows = -(-len(panels) // columns)
+    figure, axes = plt.subplots(
+        rows, columns, figsize=(4.8 * columns, 3.9 * rows), dpi=120, squeeze=False
+    )
+    colors: dict[str, str] = {}
+    for axis, (title, curves) in zip(axes.flat, panels.items(), strict=False):
+        for label, group in curves:
+            arm = label.rsplit(" (", 1)[0]
+            color = colors.setdefault(arm, f"C{len(colors) % 10}")
+            curve = group["curve"]
+            axis.plot(curve["steps"], curve["mean"], color=color, label=label)
+            axis.fill_between(
+                curve["steps"], curve["ci_low"], curve["ci_high"], color=color, alpha=0.2
+            )
+        axis.set_title(title, fontsize=10)
+        axis.set_xlabel("updates")
+        axis.set_ylabel("D4RL-normalized score")
+        axis.legend(fontsize=7)
+    for axis in list(axes.flat)[len(panels) :]:
+        axis.set_visible(False)
+    figure.suptitle("mean over runs; band: bootstrap 95% CI of the mean over runs", fontsize=10)
+    figure.tight_layout()
     save_figure_atomic(figure, path)
 
 

@@ -14,7 +14,14 @@ from typer.testing import CliRunner
 from hipode_pipeline import report as report_module
 from hipode_pipeline.cli import app
 from hipode_pipeline.errors import DataFormatError, SettingError
-from hipode_pipeline.report import build_report, find_runs, improvement, interval_estimates
+from hipode_pipeline.report import (
+    build_report,
+    curve_panels,
+    find_runs,
+    improvement,
+    interval_estimates,
+    plot_curves,
+)
 from hipode_pipeline.report import markdown as report_markdown
 
 pytest.importorskip("rliable", reason="the report extra (rliable) is not installed")
@@ -209,6 +216,15 @@ def test_comparisons_are_aggregated_over_tasks(tmp_path):
     assert 10.0 <= last["ci"][0] < 11.0 < last["ci"][1] <= 12.0
     markdown_text = report_markdown(report)
     assert "Across tasks" in markdown_text and "+11.0" in markdown_text
+    # the curves: a panel per task (their scores share no scale), arms labelled without it
+    panels = curve_panels(report)
+    assert list(panels) == ["hopper-m-r", "walker2d-m-r"]
+    assert sorted(label for label, _ in panels["walker2d-m-r"]) == [
+        "td3bc hipode (3 runs)",
+        "td3bc none (3 runs)",
+    ]
+    plot_curves(report, tmp_path / "curves.png")
+    assert (tmp_path / "curves.png").read_bytes()[:4] == b"\x89PNG"
 
 
 def test_runs_without_a_recorded_method_are_labelled(tmp_path, two_arms):
