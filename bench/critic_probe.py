@@ -167,7 +167,7 @@ def probe(
     q_all = float(q.mean())
     discount = float(state["config"].get("discount", 0.99))
     rows, to_fall = before_falls(source, discount)
-    fall_values = {key: None for key in FALL_KEYS}  # a source without falls (HalfCheetah): none
+    fall_values = dict.fromkeys(FALL_KEYS)  # a source without falls (HalfCheetah): none
     if falls.any():
         q_falls, r_falls = float(q[falls].mean()), float(source.rewards[falls].mean())
         fall_values = {

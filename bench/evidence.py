@@ -87,12 +87,12 @@ def sweep(args: argparse.Namespace) -> list[str]:
 
 def report(args: argparse.Namespace) -> list[str]:
     by, out = "task,learner,augmentation", REPORT
-    if args.by_source or args.by_stage_one_seed:
-        # per source: whether a finding holds on each dataset, not only pooled over them
-        by, out = by + ",source_sha256", REPORT / "by-source"
     if args.by_stage_one_seed:
         # per artifact: a source's artifacts differ by their stage-one seed alone
-        by, out = by + ",artifact_seed", REPORT / "by-stage-one-seed"
+        by, out = by + ",source_sha256,artifact_seed", REPORT / "by-stage-one-seed"
+    elif args.by_source:
+        # per source: whether a finding holds on each dataset, not only pooled over them
+        by, out = by + ",source_sha256", REPORT / "by-source"
     return [
         "report",
         str(RUNS),

@@ -12,7 +12,6 @@ import hashlib
 import json
 import time
 from dataclasses import asdict, dataclass, field
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +41,7 @@ from hipode_pipeline.generate import (
     novelty,
     synthetic_rows,
 )
+from hipode_pipeline.machine import utc_now
 from hipode_pipeline.models.generators import GeneratorConfig, Generators, train_generators
 from hipode_pipeline.overrides import check_fields
 from hipode_pipeline.paths import use_datasets_root
@@ -581,7 +581,7 @@ def _manifest(
         if info.ref_max_score is not None
         else task.ref_max_score,
         "source": source_record,
-        "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+        "created_utc": utc_now(),
         "table_row": summary["table_row"],
         "hyper_parameters": {
             **asdict(generation),

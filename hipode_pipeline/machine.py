@@ -25,8 +25,8 @@ def cpu_name() -> str:
 
 
 def utc_now() -> str:
-    """The current time in UTC to the second, as records and reports print it."""
-    return datetime.now(UTC).strftime("%Y-%m-%d %H:%M:%S")
+    """The current time in UTC to the second, ISO 8601, as every record of the package writes it."""
+    return datetime.now(UTC).isoformat(timespec="seconds")
 
 
 def load_average() -> str:

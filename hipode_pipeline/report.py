@@ -64,7 +64,7 @@ class Run:
     @property
     def artifact_seed(self) -> Any:
         """The stage-one seed of the run's artifact; None for a run on the source alone."""
-        return None if self.keys.get("data") == "source" else self.keys.get("artifact_seed")
+        return self.keys["artifact_seed"]
 
     @property
     def replicate(self) -> tuple[Any, Any, int]:
@@ -149,8 +149,7 @@ def read_run(folder: Path) -> Run:
     }
     keys["augmentation"] = augmentation(keys.get("data"), identity)
     # a run on the source alone has no stage-one seed: None, so it can still be grouped by it
-    if keys.get("data") == "source" or "artifact_seed" not in keys:
-        keys["artifact_seed"] = None
+    keys["artifact_seed"] = None if keys.get("data") == "source" else keys.get("artifact_seed")
     return Run(folder, keys, steps, scores)
 
 
@@ -627,13 +626,13 @@ def _tex(text: str) -> str:
 
 def curve_panels(report: dict[str, Any]) -> dict[str, list[tuple[str, dict[str, Any]]]]:
     """The groups' curves per panel: one panel per task when the report groups by task (scores
-    of different tasks do not share a scale), each curve labelled by its other keys."""
+    of different tasks do not share a scale), each curve named by its other keys (its arm)."""
     per_task = "task" in report["by"] and len({g["task"] for g in report["groups"]}) > 1
     keys = [k for k in report["by"] if not (per_task and k == "task")]
     panels: dict[str, list[tuple[str, dict[str, Any]]]] = {}
     for group in report["groups"]:
-        label = " ".join(_shown(group[k]) for k in keys) + f" ({group['n_runs']} runs)"
-        panels.setdefault(str(group["task"]) if per_task else "", []).append((label, group))
+        arm = " ".join(_shown(group[k]) for k in keys)
+        panels.setdefault(str(group["task"]) if per_task else "", []).append((arm, group))
     return panels
 
 
@@ -653,10 +652,10 @@ def plot_curves(report: dict[str, Any], path: Path) -> None:
     )
     colors: dict[str, str] = {}
     for axis, (title, curves) in zip(axes.flat, panels.items(), strict=False):
-        for label, group in curves:
-            arm = label.rsplit(" (", 1)[0]
+        for arm, group in curves:
             color = colors.setdefault(arm, f"C{len(colors) % 10}")
             curve = group["curve"]
+            label = f"{arm} ({group['n_runs']} runs)"
             axis.plot(curve["steps"], curve["mean"], color=color, label=label)
             axis.fill_between(
                 curve["steps"], curve["ci_low"], curve["ci_high"], color=color, alpha=0.2

@@ -93,7 +93,8 @@ def test_interrupted_seeds_resume_exactly_and_groups_form_by_step(tmp_path, tiny
         (10, [0, 1]),
     ]
     # each session says when and on which CPU it ran; the finish is in scores.json
-    assert all(re.fullmatch(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d", s["started_utc"]) for s in sessions)
+    iso_utc = r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\+00:00"
+    assert all(re.fullmatch(iso_utc, s["started_utc"]) for s in sessions)
     assert all(s["cpu"] == cpu_name() for s in sessions)
     assert sessions[0]["started_utc"] <= sessions[1]["started_utc"]
     scores = json.loads((Path(resumed[0].run_dir) / "scores.json").read_text())

@@ -12,13 +12,12 @@ import os
 import platform
 import shlex
 import time
-from datetime import UTC, datetime
 from pathlib import Path
 
 from hipode_pipeline import console
 from hipode_pipeline.errors import HipodeError, SettingError
 from hipode_pipeline.files import display_path, write_json_atomic, write_text_atomic
-from hipode_pipeline.machine import LoadSampler
+from hipode_pipeline.machine import LoadSampler, utc_now
 from hipode_pipeline.paths import use_datasets_root
 from hipode_pipeline.sweep.engines import read_finished, run_local, run_ray
 from hipode_pipeline.sweep.plan import (
@@ -130,7 +129,7 @@ def run_sweep(config: SweepConfig) -> QualityReport:
     root = use_datasets_root(config.root)
     config.out = config.out.resolve()
     steps, eval_every, eval_episodes, budget = resolve_budget(config)
-    started, clock = datetime.now(UTC).isoformat(timespec="seconds"), time.perf_counter()
+    started, clock = utc_now(), time.perf_counter()
     specs, arms = run_specs(config, root, display_path)
     keys = {(a["learner"], a["name"]): a["key"] for task_arms in arms.values() for a in task_arms}
     runs = []
