@@ -14,6 +14,8 @@ and the report pools sources as strata, each run paired with the baseline on its
 
     python bench/evidence.py sweep hopper-m-r --seeds 0-4              # trains / resumes
     python bench/evidence.py sweep walker2d-m-r --learner iql --seeds 0-4
+    python bench/evidence.py sweep halfcheetah-m-r --learner iql --seeds 0-2 \
+        --artifact-seeds "" --no-model-rollouts          # eta0 and hipode only, seed-major
     python bench/evidence.py sweep hopper-m-r --seeds 0-4 --report-only  # its quality.md
     python bench/evidence.py report                                    # the pooled tables
     python bench/evidence.py report --by-source                        # one row per source
@@ -67,7 +69,7 @@ def sweep(args: argparse.Namespace) -> list[str]:
         str(EVAL_EVERY),
         "--eval-episodes",
         str(EVAL_EPISODES),
-        "--model-rollouts",
+        *([] if args.no_model_rollouts else ["--model-rollouts"]),
         "--artifact-seeds",
         args.artifact_seeds,
         "--workers",
@@ -115,6 +117,11 @@ def main_parser() -> argparse.ArgumentParser:
     run.add_argument("--seeds", default="0-4", help="Training seeds (0-4, 0,2,5).")
     run.add_argument("--steps", type=int, default=None, help="Updates (default: the budget).")
     run.add_argument("--artifact-seeds", default=ARTIFACT_SEEDS, help="Extra stage-one seeds.")
+    run.add_argument(
+        "--no-model-rollouts",
+        action="store_true",
+        help="Leave out the model-rollout arms (a later sweep with them keeps these runs).",
+    )
     run.add_argument("--workers", type=int, default=2, help="Parallel training processes.")
     run.add_argument("--report-only", action="store_true", help="Report the finished runs.")
     pooled = commands.add_parser("report", help="The pooled report over every committed run.")

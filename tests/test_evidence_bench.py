@@ -27,6 +27,12 @@ def test_sweep_runs_go_to_the_sources_folder(monkeypatch):
     assert command[command.index("--seeds-per-process") + 1] == "1"
     again = evidence.main_parser().parse_args(["sweep", "walker2d-m-r", "--report-only"])
     assert evidence.sweep(again)[-1] == "--report-only"
+    fewer = evidence.main_parser().parse_args(
+        ["sweep", "walker2d-m-r", "--artifact-seeds", "", "--no-model-rollouts"]
+    )
+    command = evidence.sweep(fewer)
+    assert "--model-rollouts" not in command
+    assert command[command.index("--artifact-seeds") + 1] == ""
 
 
 def test_report_pools_by_augmentation():
