@@ -136,8 +136,22 @@ def test_sweep_runs_both_arms_reports_and_resumes(tmp_path, dataset_root):
     ]
     assert "not built for --report-only" in " ".join(bare.stderr.split())
     assert not built.exists()
+    # its synthetic-data row comes from the previous report, which describes the same artifact
     hipode_rows = described["hipode"]["synthetic"]["rows"]
     assert f"| hopper-m-r | hipode | {hipode_rows:,} |" in markdown
+    assert f"| hopper-m-r | hipode | {hipode_rows:,} |" in (results / "quality.md").read_text()
+    kept = {a["name"]: a for a in json.loads(bare.stdout)["arms"]["hopper-m-r"]}
+    assert kept["hipode"]["synthetic"] == described["hipode"]["synthetic"]
+    # a previous report of another artifact (another checksum) is not taken for this one
+    previous = json.loads((results / "quality.json").read_text())
+    for arm in previous["arms"]["hopper-m-r"]:
+        if arm["synthetic"]:
+            arm["synthetic"]["checksum"] = "sha256:" + "0" * 64
+    (results / "quality.json").write_text(json.dumps(previous))
+    other_artifact = invoke(tmp_path, source, "--steps", "30", "--report-only")
+    assert other_artifact.exit_code == 0, other_artifact.output
+    dropped = {a["name"]: a for a in json.loads(other_artifact.stdout)["arms"]["hopper-m-r"]}
+    assert dropped["hipode"]["synthetic"] is None
     assert f"| hopper-m-r | hipode | {hipode_rows:,} |" not in (results / "quality.md").read_text()
 
 

@@ -12,7 +12,6 @@ import os
 import platform
 import shlex
 import time
-from pathlib import Path
 
 from hipode_pipeline import console
 from hipode_pipeline.errors import HipodeError, SettingError
@@ -25,16 +24,12 @@ from hipode_pipeline.sweep.plan import (
     SweepConfig,
     check_seeds_per_process,
     resolve_budget,
+    results_dir,
     run_specs,
     run_units,
 )
 from hipode_pipeline.sweep.report import QualityReport, curve_plot, markdown, summarize
 from hipode_pipeline.sweep.worker import FINISHED_EARLIER, finished_scores
-
-
-def results_dir(config: SweepConfig) -> Path:
-    """Where the report goes: --results, else <out>/report."""
-    return config.results if config.results is not None else config.out / "report"
 
 
 def command_line(config: SweepConfig) -> str:

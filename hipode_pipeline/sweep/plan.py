@@ -413,6 +413,32 @@ def recorded_checksum(
     return next(iter(found.values()), None)
 
 
+def results_dir(config: SweepConfig) -> Path:
+    """Where the report goes: --results, else <out>/report."""
+    return config.results if config.results is not None else config.out / "report"
+
+
+def reported_synthetic(
+    config: SweepConfig, task_name: str, key: str, checksum: str | None
+) -> dict[str, Any] | None:
+    """An arm's synthetic-data row from the previous report, for an artifact not on this
+    machine: kept only when it describes the very artifact the runs record (same checksum)."""
+    previous = results_dir(config) / "quality.json"
+    if checksum is None or not previous.is_file():
+        return None
+    try:
+        arms = json.loads(previous.read_text()).get("arms", {}).get(task_name, [])
+    except (OSError, ValueError, AttributeError):
+        return None  # an unreadable old report only costs the row
+    for arm in arms if isinstance(arms, list) else []:
+        if not isinstance(arm, dict) or arm.get("key") != key:
+            continue
+        synthetic = arm.get("synthetic")
+        if isinstance(synthetic, dict) and synthetic.get("checksum") == checksum:
+            return synthetic
+    return None
+
+
 def synthetic_stats(artifact: Path, source: tuple[Transitions, SourceInfo]) -> dict[str, Any]:
     """What an arm's synthetic data is: its rewards against the real rewards at the same source
     states, its dynamics error, terminal share and novelty (from stage one's summary)."""
@@ -481,7 +507,13 @@ def run_specs(
                         "learner": learner,
                         "key": arm_key(learner, arm.name, config.learners),
                         "artifact": None if artifact is None else display(artifact),
-                        "synthetic": stats.get(artifact),
+                        "synthetic": stats.get(artifact)
+                        or reported_synthetic(
+                            config,
+                            task.name,
+                            arm_key(learner, arm.name, config.learners),
+                            checksums.get((learner, arm.name)),
+                        ),
                     }
                 )
         for seed in config.seeds:
