@@ -1,4 +1,4 @@
-"""Where the critics of finished TD3+BC runs stand on the source's falls.
+"""Where the critics of finished TD3+BC (or IQL) runs stand on the source's falls.
 
 A terminal transition's value is known exactly: its reward, with nothing after it. This reads
 each finished run's last checkpoint under the given folder, evaluates the critic (the smaller
@@ -14,8 +14,12 @@ discounted return when the simulator is put into s and the policy run from there
 steps; a fall ends it, the time limit does not). Q − return > 0 is overestimation.
 
     python bench/critic_probe.py bench/evidence/runs/hopper-m-r-f1a408d8
+    python bench/critic_probe.py bench/evidence/runs/halfcheetah-m-r-33eba5d6 --learner iql
 
-writes critic_probe.md and .json beside the sweep's report (<folder>/report/td3bc/). Needs the
+writes critic_probe.md and .json beside the sweep's report (<folder>/report/<learner>/). IQL's
+critics learn scaled rewards where its config normalizes them: their values are divided by that
+scale, so every Q here is in the data's reward units. IQL's Q is an in-sample (expectile) value,
+not its policy's: its Q − return also holds the gap between the two. Needs the
 runs' checkpoint.pt files (not committed: run it in the session that trained them) and the
 runs' own source under the dataset root (its sha256 is checked against the runs' records).
 """
@@ -38,6 +42,7 @@ BEFORE = 5  # rows before a fall whose critic values are compared with the retur
 STATES = 32  # source states per run at which the critic is compared with the policy's return
 HORIZON = 500  # steps of those returns: the discounted tail beyond is under 1 % at γ = 0.99
 STATES_SEED = 0  # which source states: the same for every run of a source
+LEARNERS = {"td3bc": "TD3+BC", "iql": "IQL"}  # learners with twin critics Q(s, a)
 FALL_KEYS = (
     "q_falls",
     "reward_falls",
@@ -70,10 +75,13 @@ def before_falls(data, discount: float):
     return np.concatenate(rows), np.concatenate(returns)
 
 
-def run_folders(root: Path) -> list[Path]:
-    """Finished runs (scores.json) that still have their checkpoint."""
+def run_folders(root: Path, learner: str = "td3bc") -> list[Path]:
+    """The learner's finished runs (scores.json) that still have their checkpoint; run folders
+    are named <learner>-seed<k>."""
     return sorted(
-        p.parent for p in root.rglob("scores.json") if (p.parent / "checkpoint.pt").is_file()
+        p.parent
+        for p in root.rglob("scores.json")
+        if (p.parent / "checkpoint.pt").is_file() and p.parent.name.startswith(f"{learner}-seed")
     )
 
 
@@ -94,16 +102,18 @@ def learner(state: dict, obs_dim: int, act_dim: int, origin: str):
 
 
 def critic_values(model, observations, actions):
-    """min over the twin critics of Q(s, a) for every row, on the CPU, in chunks."""
+    """min over the twin critics of Q(s, a) for every row, on the CPU, in chunks, in the data's
+    reward units (a learner that scaled its rewards has its values scaled back)."""
     import torch
 
+    scale = float(getattr(model, "reward_scale", 1.0))
     values = []
     with torch.no_grad():
         for start in range(0, len(observations), CHUNK):
             obs = torch.as_tensor(observations[start : start + CHUNK]).unsqueeze(0)
             act = torch.as_tensor(actions[start : start + CHUNK]).unsqueeze(0)
             values.append(model.critic(model.normalize(obs), act).amin(1)[0])
-    return torch.cat(values).numpy()
+    return torch.cat(values).numpy() / scale
 
 
 def start_states(data, env_id: str, count: int):
@@ -159,8 +169,8 @@ def probe(
         )
     checkpoint = folder / "checkpoint.pt"
     state = load_checkpoint(checkpoint)["learner"]
-    if state["learner"] != "td3bc":
-        raise DataFormatError(checkpoint, "learner", "td3bc", state["learner"])
+    if state["learner"] not in LEARNERS:
+        raise DataFormatError(checkpoint, "learner", f"one of {sorted(LEARNERS)}", state["learner"])
     model = learner(state, source.obs_dim, source.act_dim, str(checkpoint))
     q = critic_values(model, source.observations, source.actions)
     falls = source.terminals
@@ -257,6 +267,7 @@ def main(argv: list[str] | None = None) -> None:
         "--states", type=int, default=STATES, help="Source states for Q vs the return (0: none)."
     )
     parser.add_argument("--horizon", type=int, default=HORIZON, help="Steps of those returns.")
+    parser.add_argument("--learner", default="td3bc", choices=sorted(LEARNERS), help="Whose runs.")
     args = parser.parse_args(argv)
     if args.states < 0 or args.horizon < 1:
         sys.exit(f"expected --states ≥ 0 and --horizon ≥ 1, found {args.states}, {args.horizon}")
@@ -267,9 +278,9 @@ def main(argv: list[str] | None = None) -> None:
     from hipode_pipeline.threads import torch_threads
     from hipode_pipeline.versions import package_versions
 
-    folders = run_folders(args.folder.resolve())
+    folders = run_folders(args.folder.resolve(), args.learner)
     if not folders:
-        sys.exit(f"{args.folder}: no finished run with its checkpoint.pt under it")
+        sys.exit(f"{args.folder}: no finished {args.learner} run with its checkpoint.pt under it")
     configs = {f: json.loads((f / "config.json").read_text()) for f in folders}
     ids = {config["source_id"] for config in configs.values()}
     sources = {i: load_source(i, datasets_root()) for i in ids}
@@ -277,7 +288,7 @@ def main(argv: list[str] | None = None) -> None:
     with torch_threads(1):
         rows = [probe(f, configs[f], sources, args.states, args.horizon) for f in folders]
     rows.sort(key=lambda r: (r["arm"], r["seed"]))
-    out = args.folder / "report" / "td3bc"
+    out = args.folder / "report" / args.learner
     out.mkdir(parents=True, exist_ok=True)
     record = {
         "command": "python bench/critic_probe.py " + " ".join(argv or sys.argv[1:]),
@@ -289,7 +300,7 @@ def main(argv: list[str] | None = None) -> None:
     write_json_atomic(out / "critic_probe.json", record)
     write_text_atomic(
         out / "critic_probe.md",
-        f"# TD3+BC critics at the source's falls\n\n`{record['command']}` "
+        f"# {LEARNERS[args.learner]} critics at the source's falls\n\n`{record['command']}` "
         f"({record['date_utc']} UTC). Q: the smaller twin critic at the source's own (s, a); "
         "a fall (terminal row) is worth its reward exactly.\n\n" + table(rows),
     )

@@ -15,7 +15,8 @@ import torch
 
 from hipode_pipeline.data.transitions import Transitions
 from hipode_pipeline.errors import DataFormatError
-from hipode_pipeline.learners import TD3BC
+from hipode_pipeline.learners import IQL, TD3BC
+from hipode_pipeline.learners.iql import IQLConfig
 from hipode_pipeline.run_folder import save_checkpoint
 
 BENCH = Path(__file__).resolve().parent.parent / "bench"
@@ -40,9 +41,12 @@ def source(n=60, seed=0) -> Transitions:
     )
 
 
-def finished_run(folder: Path, data: Transitions, sha: str, q_first: float, q_second: float):
+def finished_run(
+    folder: Path, data: Transitions, sha: str, q_first: float, q_second: float, model=None
+):
     """A run folder whose twin critics are constants (their output layers zeroed but the bias)."""
-    model = TD3BC(data.obs_dim, data.act_dim, seed=3)
+    if model is None:
+        model = TD3BC(data.obs_dim, data.act_dim, seed=3)
     model.fit_statistics(data)
     with torch.no_grad():
         model.critic.weights[-1].zero_()
@@ -101,6 +105,24 @@ def test_a_source_without_falls_gets_no_fall_values(tmp_path):
     json.dumps(row, allow_nan=False)  # the record stays strict JSON: no NaN for missing falls
     text = critic_probe.table([row])
     assert "No falls" in text and "| eta0 | 3 | 0 | 4.0 |" in text and "nan" not in text
+
+
+def test_iql_runs_are_probed_apart_in_the_datas_reward_units(tmp_path):
+    data = source()
+    model = IQL(data.obs_dim, data.act_dim, IQLConfig(normalize_reward=True), seed=3)
+    folder = tmp_path / "hopper-m-r" / "hipode" / "iql-seed3"
+    config = finished_run(folder, data, "ab" * 32, 8.0, 9.0, model=model)
+    finished_run(tmp_path / "hopper-m-r" / "hipode" / "td3bc-seed3", data, "ab" * 32, 1.0, 1.0)
+    assert critic_probe.run_folders(tmp_path, "iql") == [folder]
+    assert [f.name for f in critic_probe.run_folders(tmp_path)] == ["td3bc-seed3"]
+    scale = model.reward_scale
+    assert scale != 1.0  # the critic learned rewards times this scale
+    sources = {"local/hopper/medium-replay-v0": (data, SimpleNamespace(sha256="ab" * 32))}
+    row = critic_probe.probe(folder, config, sources, states=0)
+    assert row["q_mean"] == pytest.approx(8.0 / scale, rel=1e-5)
+    assert row["fall_overestimate"] == pytest.approx(
+        8.0 / scale - float(data.rewards[data.terminals].mean()), rel=1e-5
+    )
 
 
 def test_a_run_of_another_source_is_refused(tmp_path):
