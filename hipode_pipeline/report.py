@@ -624,25 +624,40 @@ def _tex(text: str) -> str:
     return text
 
 
+PANEL_KEYS = ("task", "learner")  # scores of different tasks share no scale; learners apart
+
+
 def curve_panels(report: dict[str, Any]) -> dict[str, list[tuple[str, dict[str, Any]]]]:
-    """The groups' curves per panel: one panel per task when the report groups by task (scores
-    of different tasks do not share a scale), each curve named by its other keys (its arm)."""
-    per_task = "task" in report["by"] and len({g["task"] for g in report["groups"]}) > 1
-    keys = [k for k in report["by"] if not (per_task and k == "task")]
+    """The groups' curves per panel: one panel per task and per learner where the report groups
+    by several of them, each curve named by its other keys (its arm)."""
+    split = [
+        k for k in PANEL_KEYS if k in report["by"] and len({g[k] for g in report["groups"]}) > 1
+    ]
+    keys = [k for k in report["by"] if k not in split]
     panels: dict[str, list[tuple[str, dict[str, Any]]]] = {}
     for group in report["groups"]:
         arm = " ".join(_shown(group[k]) for k in keys)
-        panels.setdefault(str(group["task"]) if per_task else "", []).append((arm, group))
+        title = " · ".join(_shown(group[k]) for k in split)
+        panels.setdefault(title, []).append((arm, group))
     return panels
 
 
+def update_count(value: float, _position: int | None = None) -> str:
+    """An axis tick of updates, short enough not to crowd: 200000 -> 200k, 1000000 -> 1M."""
+    for size, suffix in ((1e6, "M"), (1e3, "k")):
+        if abs(value) >= size:
+            return f"{value / size:g}{suffix}"
+    return f"{value:g}"
+
+
 def plot_curves(report: dict[str, Any], path: Path) -> None:
-    """Mean learning curve per group with its bootstrap 95 % CI band, as PNG; a panel per task,
-    an arm in the same colour in every panel."""
+    """Mean learning curve per group with its bootstrap 95 % CI band, as PNG; a panel per task
+    and learner (curve_panels), an arm in the same colour in every panel."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter, MaxNLocator
 
     panels = curve_panels(report)
     columns = min(3, len(panels))
@@ -661,6 +676,8 @@ def plot_curves(report: dict[str, Any], path: Path) -> None:
                 curve["steps"], curve["ci_low"], curve["ci_high"], color=color, alpha=0.2
             )
         axis.set_title(title, fontsize=10)
+        axis.xaxis.set_major_locator(MaxNLocator(5))
+        axis.xaxis.set_major_formatter(FuncFormatter(update_count))
         axis.set_xlabel("updates")
         axis.set_ylabel("D4RL-normalized score")
         axis.legend(fontsize=7)

@@ -21,6 +21,7 @@ from hipode_pipeline.report import (
     improvement,
     interval_estimates,
     plot_curves,
+    update_count,
 )
 from hipode_pipeline.report import markdown as report_markdown
 
@@ -221,6 +222,34 @@ def test_comparisons_are_aggregated_over_tasks(tmp_path):
     assert list(panels) == ["hopper-m-r", "walker2d-m-r"]
     assert sorted(arm for arm, _ in panels["walker2d-m-r"]) == ["td3bc hipode", "td3bc none"]
     assert all(group["n_runs"] == 3 for _, group in panels["walker2d-m-r"])
+    plot_curves(report, tmp_path / "curves.png")
+    assert (tmp_path / "curves.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_curves_of_two_learners_get_panels_of_their_own(tmp_path):
+    curve = {"steps": [0, 100_000, 200_000], "mean": [1.0, 2.0, 3.0]}
+    curve |= {"ci_low": [0.5, 1.5, 2.5], "ci_high": [1.5, 2.5, 3.5]}
+    groups = [
+        {"task": task, "learner": learner, "augmentation": arm, "n_runs": 2, "curve": curve}
+        for task in ("halfcheetah-m-r", "hopper-m-r")
+        for learner in ("iql", "td3bc")
+        for arm in ("none", "hipode")
+        if (task, learner) != ("hopper-m-r", "iql")
+    ]
+    report = {"by": ["task", "learner", "augmentation"], "groups": groups}
+    panels = curve_panels(report)
+    titles = ["halfcheetah-m-r · iql", "halfcheetah-m-r · td3bc", "hopper-m-r · td3bc"]
+    assert list(panels) == titles
+    assert [arm for arm, _ in panels["halfcheetah-m-r · iql"]] == ["none", "hipode"]
+    one_task = {"by": report["by"], "groups": [g for g in groups if g["task"] == "hopper-m-r"]}
+    assert list(curve_panels(one_task)) == [""]  # one task, one learner: one panel
+    assert [update_count(v) for v in (0, 50_000, 200_000, 1_000_000, 500)] == [
+        "0",
+        "50k",
+        "200k",
+        "1M",
+        "500",
+    ]
     plot_curves(report, tmp_path / "curves.png")
     assert (tmp_path / "curves.png").read_bytes()[:4] == b"\x89PNG"
 
