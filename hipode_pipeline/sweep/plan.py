@@ -418,25 +418,15 @@ def results_dir(config: SweepConfig) -> Path:
     return config.results if config.results is not None else config.out / "report"
 
 
-def reported_synthetic(
-    config: SweepConfig, task_name: str, key: str, checksum: str | None
-) -> dict[str, Any] | None:
-    """An arm's synthetic-data row from the previous report, for an artifact not on this
-    machine: kept only when it describes the very artifact the runs record (same checksum)."""
+def reported_synthetic(config: SweepConfig, task_name: str) -> dict[str, dict[str, Any]]:
+    """The task's synthetic-data rows of the previous report by artifact checksum: for an
+    artifact not on this machine, the row of the very artifact its runs record."""
     previous = results_dir(config) / "quality.json"
-    if checksum is None or not previous.is_file():
-        return None
     try:
-        arms = json.loads(previous.read_text()).get("arms", {}).get(task_name, [])
-    except (OSError, ValueError, AttributeError):
-        return None  # an unreadable old report only costs the row
-    for arm in arms if isinstance(arms, list) else []:
-        if not isinstance(arm, dict) or arm.get("key") != key:
-            continue
-        synthetic = arm.get("synthetic")
-        if isinstance(synthetic, dict) and synthetic.get("checksum") == checksum:
-            return synthetic
-    return None
+        arms = json.loads(previous.read_text())["arms"][task_name]
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}  # no or another old report only costs the rows
+    return {a["synthetic"]["checksum"]: a["synthetic"] for a in arms if a.get("synthetic")}
 
 
 def synthetic_stats(artifact: Path, source: tuple[Transitions, SourceInfo]) -> dict[str, Any]:
@@ -497,6 +487,8 @@ def run_specs(
             for key, path in paths.items()
             if path is not None
         }
+        # artifacts this machine lacks (--report-only) keep the rows the last report had
+        reported = reported_synthetic(config, task.name)
         for learner in config.learners:
             for arm in arms:
                 artifact = paths[learner, arm.name]
@@ -508,12 +500,7 @@ def run_specs(
                         "key": arm_key(learner, arm.name, config.learners),
                         "artifact": None if artifact is None else display(artifact),
                         "synthetic": stats.get(artifact)
-                        or reported_synthetic(
-                            config,
-                            task.name,
-                            arm_key(learner, arm.name, config.learners),
-                            checksums.get((learner, arm.name)),
-                        ),
+                        or reported.get(checksums.get((learner, arm.name))),
                     }
                 )
         for seed in config.seeds:
