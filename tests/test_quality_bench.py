@@ -108,6 +108,17 @@ def test_sweep_runs_both_arms_reports_and_resumes(tmp_path, dataset_root):
     assert window == [pytest.approx(sum(p[1] for p in hipode["curve"]) / 3)]  # last 3 evals
     hipode_summary = longer["summary"]["hopper-m-r"]["hipode"]
     assert hipode_summary["curve_means"] == window  # three evaluations: all of them are the last 3
+    # a sweep over fewer arms keeps the rows of the arms it left out, by artifact checksum
+    seen = json.loads((results / "quality.json").read_text())["synthetic_seen"]["hopper-m-r"]
+    for arm in ("hipode", "lam1", "artifact-seed3"):
+        assert seen[described[arm]["synthetic"]["checksum"]] == described[arm]["synthetic"]
+    seed3 = out / "artifact-seed3" / "artifact.hdf5"
+    seed3.unlink()
+    left_out = invoke(tmp_path, source, "--steps", "20", "--artifact-seeds", "3", "--report-only")
+    assert left_out.exit_code == 0, left_out.output
+    kept = {a["name"]: a for a in json.loads(left_out.stdout)["arms"]["hopper-m-r"]}
+    assert kept["artifact-seed3"]["synthetic"] == described["artifact-seed3"]["synthetic"]
+    assert not seed3.exists()
 
     # bench/quality.py runs the same engine: --report-only trains nothing, reads the runs back
     args = sweep_args(tmp_path, source, "--steps", "30", "--report-only")
@@ -147,6 +158,7 @@ def test_sweep_runs_both_arms_reports_and_resumes(tmp_path, dataset_root):
     for arm in previous["arms"]["hopper-m-r"]:
         if arm["synthetic"]:
             arm["synthetic"]["checksum"] = "sha256:" + "0" * 64
+    previous["synthetic_seen"] = {}
     (results / "quality.json").write_text(json.dumps(previous))
     other_artifact = invoke(tmp_path, source, "--steps", "30", "--report-only")
     assert other_artifact.exit_code == 0, other_artifact.output

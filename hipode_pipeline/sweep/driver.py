@@ -27,6 +27,7 @@ from hipode_pipeline.sweep.plan import (
     results_dir,
     run_specs,
     run_units,
+    synthetic_seen,
 )
 from hipode_pipeline.sweep.report import QualityReport, curve_plot, markdown, summarize
 from hipode_pipeline.sweep.worker import FINISHED_EARLIER, finished_scores
@@ -189,6 +190,7 @@ def run_sweep(config: SweepConfig) -> QualityReport:
         started=started,
         seconds=time.perf_counter() - clock,
         note=config.note,
+        synthetic_seen=synthetic_seen(config, arms),
     )
     results = results_dir(config)
     results.mkdir(parents=True, exist_ok=True)

@@ -419,14 +419,30 @@ def results_dir(config: SweepConfig) -> Path:
 
 
 def reported_synthetic(config: SweepConfig, task_name: str) -> dict[str, dict[str, Any]]:
-    """The task's synthetic-data rows of the previous report by artifact checksum: for an
-    artifact not on this machine, the row of the very artifact its runs record."""
+    """Every synthetic-data row the previous report knew for the task, by artifact checksum:
+    its arms' rows and those it kept from earlier reports. For an artifact not on this machine
+    it is the row of the very artifact its runs record."""
     previous = results_dir(config) / "quality.json"
     try:
-        arms = json.loads(previous.read_text())["arms"][task_name]
-    except (OSError, ValueError, KeyError, TypeError):
+        report = json.loads(previous.read_text())
+        rows = list(report.get("synthetic_seen", {}).get(task_name, {}).values())
+        rows += [a["synthetic"] for a in report["arms"][task_name] if a.get("synthetic")]
+        return {row["checksum"]: row for row in rows if row.get("checksum")}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return {}  # no or another old report only costs the rows
-    return {a["synthetic"]["checksum"]: a["synthetic"] for a in arms if a.get("synthetic")}
+
+
+def synthetic_seen(config: SweepConfig, arms: dict[str, list[dict]]) -> dict[str, dict]:
+    """Per task, the previous report's rows and this sweep's, by artifact checksum: a sweep
+    over fewer arms keeps the rows of the others for a later --report-only."""
+    seen = {}
+    for task_name, task_arms in arms.items():
+        rows = reported_synthetic(config, task_name)
+        rows.update(
+            (a["synthetic"]["checksum"], a["synthetic"]) for a in task_arms if a["synthetic"]
+        )
+        seen[task_name] = {checksum: rows[checksum] for checksum in sorted(rows) if checksum}
+    return seen
 
 
 def synthetic_stats(artifact: Path, source: tuple[Transitions, SourceInfo]) -> dict[str, Any]:

@@ -44,6 +44,8 @@ class QualityReport:
     started: str  # UTC time the sweep started
     seconds: float  # wall time of the sweep
     files: dict[str, str] = field(default_factory=dict)  # the written report files
+    # task -> artifact checksum -> synthetic-data row: this report's and the earlier reports'
+    synthetic_seen: dict[str, dict[str, dict[str, Any]]] = field(default_factory=dict)
     note: str = ""  # the --note text
 
     def to_dict(self) -> dict[str, Any]:
