@@ -167,6 +167,18 @@ def test_sweep_runs_both_arms_reports_and_resumes(tmp_path, dataset_root):
     assert f"| hopper-m-r | hipode | {hipode_rows:,} |" not in (results / "quality.md").read_text()
 
 
+def test_synthetic_rows_seen_keep_other_tasks_and_take_this_sweeps_on_top():
+    old = {"checksum": "sha256:a", "rows": 1}
+    other_task = {"checksum": "sha256:b", "rows": 2}
+    new = {"checksum": "sha256:a", "rows": 3}
+    previous = {"hopper-m-r": {"sha256:a": old}, "walker2d-m-r": {"sha256:b": other_task}}
+    arms = {"hopper-m-r": [{"synthetic": None}, {"synthetic": new}]}
+    seen = plan.synthetic_seen(previous, arms)
+    # a sweep over fewer tasks keeps the others' rows; this sweep's row replaces the old one
+    assert seen == {"hopper-m-r": {"sha256:a": new}, "walker2d-m-r": {"sha256:b": other_task}}
+    assert previous["hopper-m-r"]["sha256:a"] is old  # the previous report is not edited
+
+
 def test_sweep_over_learners_pairs_each_with_its_own_baseline(tmp_path, dataset_root):
     source = write_source(tmp_path / "source.hdf5", n_episodes=8)
     done = invoke(

@@ -23,6 +23,7 @@ from hipode_pipeline.sweep.plan import (
     ENGINES,
     SweepConfig,
     check_seeds_per_process,
+    previous_synthetic,
     resolve_budget,
     results_dir,
     run_specs,
@@ -126,7 +127,8 @@ def run_sweep(config: SweepConfig) -> QualityReport:
     config.out = config.out.resolve()
     steps, eval_every, eval_episodes, budget = resolve_budget(config)
     started, clock = utc_now(), time.perf_counter()
-    specs, arms = run_specs(config, root, display_path)
+    previous = previous_synthetic(config)  # read before this sweep's report replaces it
+    specs, arms = run_specs(config, root, display_path, previous)
     keys = {(a["learner"], a["name"]): a["key"] for task_arms in arms.values() for a in task_arms}
     runs = []
     with LoadSampler() as load, console.progress(disable=not config.show_progress) as prog:
@@ -190,7 +192,7 @@ def run_sweep(config: SweepConfig) -> QualityReport:
         started=started,
         seconds=time.perf_counter() - clock,
         note=config.note,
-        synthetic_seen=synthetic_seen(config, arms),
+        synthetic_seen=synthetic_seen(previous, arms),
     )
     results = results_dir(config)
     results.mkdir(parents=True, exist_ok=True)

@@ -15,7 +15,7 @@ trained in one process as one stacked model (`run_units`).
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -418,31 +418,41 @@ def results_dir(config: SweepConfig) -> Path:
     return config.results if config.results is not None else config.out / "report"
 
 
-def reported_synthetic(config: SweepConfig, task_name: str) -> dict[str, dict[str, Any]]:
-    """Every synthetic-data row the previous report knew for the task, by artifact checksum:
-    its arms' rows and those it kept from earlier reports. For an artifact not on this machine
-    it is the row of the very artifact its runs record."""
-    previous = results_dir(config) / "quality.json"
+def previous_synthetic(config: SweepConfig) -> dict[str, dict[str, dict[str, Any]]]:
+    """The previous report's synthetic-data rows per task and artifact checksum: its arms' rows
+    and those it kept from earlier reports. For an artifact not on this machine it is the row
+    of the very artifact its runs record."""
     try:
-        report = json.loads(previous.read_text())
-        rows = list(report.get("synthetic_seen", {}).get(task_name, {}).values())
-        rows += [a["synthetic"] for a in report["arms"][task_name] if a.get("synthetic")]
-        return {row["checksum"]: row for row in rows if row.get("checksum")}
+        report = json.loads((results_dir(config) / "quality.json").read_text())
+        kept, arms = report.get("synthetic_seen", {}), report["arms"]
+        return {
+            task: by_checksum(
+                [
+                    *kept.get(task, {}).values(),
+                    *(a["synthetic"] for a in arms.get(task, []) if a.get("synthetic")),
+                ]
+            )
+            for task in {*kept, *arms}
+        }
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return {}  # no or another old report only costs the rows
 
 
-def synthetic_seen(config: SweepConfig, arms: dict[str, list[dict]]) -> dict[str, dict]:
-    """Per task, the previous report's rows and this sweep's, by artifact checksum: a sweep
-    over fewer arms keeps the rows of the others for a later --report-only."""
-    seen = {}
+def by_checksum(rows: Iterable[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Synthetic-data rows by their artifact's checksum (a later row of one artifact wins)."""
+    return {row["checksum"]: row for row in rows if row.get("checksum")}
+
+
+def synthetic_seen(
+    previous: dict[str, dict[str, dict[str, Any]]], arms: dict[str, list[dict]]
+) -> dict[str, dict[str, dict[str, Any]]]:
+    """The previous report's rows with this sweep's on top, per task and checksum: a sweep over
+    fewer arms or tasks keeps the others' rows for a later --report-only."""
+    seen = {task: dict(rows) for task, rows in previous.items()}
     for task_name, task_arms in arms.items():
-        rows = reported_synthetic(config, task_name)
-        rows.update(
-            (a["synthetic"]["checksum"], a["synthetic"]) for a in task_arms if a["synthetic"]
-        )
-        seen[task_name] = {checksum: rows[checksum] for checksum in sorted(rows) if checksum}
-    return seen
+        current = by_checksum(a["synthetic"] for a in task_arms if a["synthetic"])
+        seen.setdefault(task_name, {}).update(current)
+    return {task: dict(sorted(rows.items())) for task, rows in sorted(seen.items())}
 
 
 def synthetic_stats(artifact: Path, source: tuple[Transitions, SourceInfo]) -> dict[str, Any]:
@@ -471,10 +481,14 @@ def synthetic_stats(artifact: Path, source: tuple[Transitions, SourceInfo]) -> d
 
 
 def run_specs(
-    config: SweepConfig, root: Path, display: Callable[[Path], str | None] = str
+    config: SweepConfig,
+    root: Path,
+    display: Callable[[Path], str | None] = str,
+    previous: dict[str, dict[str, dict[str, Any]]] | None = None,
 ) -> tuple[list[RunSpec], dict[str, list[dict]]]:
     """Every (task, learner, arm, seed) run, seeds interleaved so paired runs finish close
-    together, and each task's arms as the report describes them (`display` shows a path)."""
+    together, and each task's arms as the report describes them (`display` shows a path;
+    `previous`: the last report's synthetic-data rows, for artifacts this machine lacks)."""
     if (config.source or config.artifact) and len(config.tasks) != 1:
         raise SettingError("--source/--artifact: expected exactly one task in --tasks")
     if config.artifact and len(config.learners) != 1:
@@ -504,7 +518,7 @@ def run_specs(
             if path is not None
         }
         # artifacts this machine lacks (--report-only) keep the rows the last report had
-        reported = reported_synthetic(config, task.name)
+        reported = (previous or {}).get(task.name, {})
         for learner in config.learners:
             for arm in arms:
                 artifact = paths[learner, arm.name]
