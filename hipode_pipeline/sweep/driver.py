@@ -128,7 +128,7 @@ def run_sweep(config: SweepConfig) -> QualityReport:
     steps, eval_every, eval_episodes, budget = resolve_budget(config)
     started, clock = utc_now(), time.perf_counter()
     previous = previous_synthetic(config)  # read before this sweep's report replaces it
-    specs, arms = run_specs(config, root, display_path, previous)
+    specs, arms = run_specs(config, root, previous, display_path)
     keys = {(a["learner"], a["name"]): a["key"] for task_arms in arms.values() for a in task_arms}
     runs = []
     with LoadSampler() as load, console.progress(disable=not config.show_progress) as prog:

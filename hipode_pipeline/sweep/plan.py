@@ -413,12 +413,16 @@ def recorded_checksum(
     return next(iter(found.values()), None)
 
 
+# synthetic-data rows of a sweep's report: task -> artifact checksum -> row
+SyntheticRows = dict[str, dict[str, dict[str, Any]]]
+
+
 def results_dir(config: SweepConfig) -> Path:
     """Where the report goes: --results, else <out>/report."""
     return config.results if config.results is not None else config.out / "report"
 
 
-def previous_synthetic(config: SweepConfig) -> dict[str, dict[str, dict[str, Any]]]:
+def previous_synthetic(config: SweepConfig) -> SyntheticRows:
     """The previous report's synthetic-data rows per task and artifact checksum: its arms' rows
     and those it kept from earlier reports. For an artifact not on this machine it is the row
     of the very artifact its runs record."""
@@ -443,9 +447,7 @@ def by_checksum(rows: Iterable[dict[str, Any]]) -> dict[str, dict[str, Any]]:
     return {row["checksum"]: row for row in rows if row.get("checksum")}
 
 
-def synthetic_seen(
-    previous: dict[str, dict[str, dict[str, Any]]], arms: dict[str, list[dict]]
-) -> dict[str, dict[str, dict[str, Any]]]:
+def synthetic_seen(previous: SyntheticRows, arms: dict[str, list[dict]]) -> SyntheticRows:
     """The previous report's rows with this sweep's on top, per task and checksum: a sweep over
     fewer arms or tasks keeps the others' rows for a later --report-only."""
     seen = {task: dict(rows) for task, rows in previous.items()}
@@ -483,8 +485,8 @@ def synthetic_stats(artifact: Path, source: tuple[Transitions, SourceInfo]) -> d
 def run_specs(
     config: SweepConfig,
     root: Path,
+    previous: SyntheticRows,
     display: Callable[[Path], str | None] = str,
-    previous: dict[str, dict[str, dict[str, Any]]] | None = None,
 ) -> tuple[list[RunSpec], dict[str, list[dict]]]:
     """Every (task, learner, arm, seed) run, seeds interleaved so paired runs finish close
     together, and each task's arms as the report describes them (`display` shows a path;
@@ -518,7 +520,7 @@ def run_specs(
             if path is not None
         }
         # artifacts this machine lacks (--report-only) keep the rows the last report had
-        reported = (previous or {}).get(task.name, {})
+        reported = previous.get(task.name, {})
         for learner in config.learners:
             for arm in arms:
                 artifact = paths[learner, arm.name]

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from hipode_pipeline.files import write_bytes_atomic
-from hipode_pipeline.sweep.plan import BASELINE, HIPODE, learner_text
+from hipode_pipeline.sweep.plan import BASELINE, HIPODE, SyntheticRows, learner_text
 
 SYNTHETIC_COLUMNS = (
     "task",
@@ -45,7 +45,7 @@ class QualityReport:
     seconds: float  # wall time of the sweep
     files: dict[str, str] = field(default_factory=dict)  # the written report files
     # task -> artifact checksum -> synthetic-data row: this report's and the earlier reports'
-    synthetic_seen: dict[str, dict[str, dict[str, Any]]] = field(default_factory=dict)
+    synthetic_seen: SyntheticRows = field(default_factory=dict)
     note: str = ""  # the --note text
 
     def to_dict(self) -> dict[str, Any]:
