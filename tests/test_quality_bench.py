@@ -5,6 +5,7 @@ resume/skip, several learners, and clear user errors (units of seeds: test_sweep
 from __future__ import annotations
 
 import json
+import shutil
 import sys
 from pathlib import Path
 
@@ -350,3 +351,42 @@ def test_model_rollout_arms_follow_the_stage_one_seeds():
     assert {"hipode", "artifact-seed1", "artifact-seed2"} <= set(arms)
     assert "--model-rollouts" in driver.command_line(config)
     assert "model-rollouts" not in {a.name for a in plan.arms_for(plan.SweepConfig())}
+
+
+def test_a_sweep_of_new_seeds_reports_every_finished_run_of_its_folder(tmp_path, dataset_root):
+    source = write_source(tmp_path / "source.hdf5", n_episodes=8)
+    tiny = ("--steps", "10", "--eval-episodes", "1")
+    assert invoke(tmp_path, source, *tiny).exit_code == 0  # seed 0
+    arms = tmp_path / "out" / "hopper-m-r"
+    # folders the report must not take for finished runs of the arms: an unfinished run, a run
+    # of other settings (its config names seed 0), a name run_folder never writes
+    (arms / "eta0" / "td3bc-seed5").mkdir()
+    (arms / "eta0" / "td3bc-seed5" / "config.json").write_text("{}")
+    shutil.copytree(arms / "hipode" / "td3bc-seed0", arms / "hipode" / "td3bc-seed7")
+    shutil.copytree(arms / "hipode" / "td3bc-seed0", arms / "hipode" / "td3bc-seed01")
+
+    later = invoke(tmp_path, source, *tiny, "--seeds", "1")
+    assert later.exit_code == 0, later.output
+    result = json.loads(later.stdout)
+    runs = {(r["arm"], r["seed"]): r["status"] for r in result["runs"]}
+    assert runs == {
+        ("eta0", 0): "finished earlier",
+        ("hipode", 0): "finished earlier",
+        ("eta0", 1): "trained",
+        ("hipode", 1): "trained",
+    }
+    assert result["budget"]["seeds"] == [1] and result["budget"]["earlier_seeds"] == [0]
+    difference = result["summary"]["hopper-m-r"]["hipode"]["difference"]["eta0"]
+    assert difference["seeds"] == [0, 1]
+    left_out = " ".join(later.stderr.split())
+    assert "td3bc-seed5 (not finished at 10 updates)" in left_out
+    assert "td3bc-seed7: holds a finished run with other settings (seed differ)" in left_out
+    assert "seed01" not in left_out
+    markdown = (tmp_path / "results" / "quality.md").read_text()
+    assert "seeds [1] asked in every arm, and seeds [0] that earlier invocations finished" in (
+        " ".join(markdown.split())
+    )
+    # read back alone, the folder reports the same runs
+    again = json.loads(invoke(tmp_path, source, *tiny, "--seeds", "0", "--report-only").stdout)
+    assert again["budget"]["earlier_seeds"] == [1]
+    assert sorted((r["arm"], r["seed"]) for r in again["runs"]) == sorted(runs)

@@ -18,7 +18,7 @@ from hipode_pipeline.errors import HipodeError, SettingError
 from hipode_pipeline.files import display_path, write_json_atomic, write_text_atomic
 from hipode_pipeline.machine import LoadSampler, utc_now
 from hipode_pipeline.paths import use_datasets_root
-from hipode_pipeline.sweep.engines import read_finished, run_local, run_ray
+from hipode_pipeline.sweep.engines import read_earlier, read_finished, run_local, run_ray
 from hipode_pipeline.sweep.plan import (
     ENGINES,
     SweepConfig,
@@ -130,6 +130,12 @@ def run_sweep(config: SweepConfig) -> QualityReport:
     previous = previous_synthetic(config)  # read before this sweep's report replaces it
     specs, arms = run_specs(config, root, previous, display_path)
     keys = {(a["learner"], a["name"]): a["key"] for task_arms in arms.values() for a in task_arms}
+
+    def as_row(record: dict) -> dict:
+        """A run's record as the report lists it: its arm's row key, its folder shown."""
+        key = keys[record["learner"], record["arm"]]
+        return {**record, "key": key, "run_dir": display_path(record["run_dir"])}
+
     runs = []
     with LoadSampler() as load, console.progress(disable=not config.show_progress) as prog:
         bar = prog.add_task(
@@ -151,17 +157,19 @@ def run_sweep(config: SweepConfig) -> QualityReport:
         unfinished = sum(finished_scores(spec) is None for spec in specs)
         pace = Pace(0 if config.report_only else unfinished)
         for record in executed:
-            key = keys[record["learner"], record["arm"]]
-            runs.append({**record, "key": key, "run_dir": display_path(record["run_dir"])})
+            runs.append(row := as_row(record))
             pace.add(record)
             prog.update(
                 bar,
                 advance=1,
-                info=f"{record['task']} {key} seed {record['seed']}: {record['final_score']:.1f}",
+                info=f"{row['task']} {row['key']} seed {row['seed']}: {row['final_score']:.1f}",
                 **pace.fields(),
             )
         # runs left out (--report-only, unfinished) never arrive: the bar ends at what did
         prog.update(bar, total=len(runs))
+    # the report covers the folder, not this invocation: seeds 3-4 after 0-2 report 0-4
+    earlier = [as_row(record) for record in read_earlier(specs, set(config.seeds))]
+    runs += earlier
     if not runs:
         raise HipodeError(f"{config.out}: no finished runs at {steps} steps to report")
     report = QualityReport(
@@ -173,6 +181,7 @@ def run_sweep(config: SweepConfig) -> QualityReport:
             "eval_every": eval_every,
             "eval_episodes": eval_episodes,
             "seeds": config.seeds,
+            "earlier_seeds": sorted({r["seed"] for r in earlier}),
             "report_only": config.report_only,
         },
         machine={

@@ -6,17 +6,20 @@ yields the runs' records as their units finish."""
 from __future__ import annotations
 
 from collections.abc import Iterator
+from dataclasses import replace
 from multiprocessing import get_context
 from typing import Any
 
 from hipode_pipeline import console
-from hipode_pipeline.errors import HipodeError
+from hipode_pipeline.errors import HipodeError, OverwriteError
 from hipode_pipeline.sweep.worker import (
     FINISHED_EARLIER,
     RunSpec,
     finished_scores,
+    recorded_seeds,
     run_record,
     run_unit,
+    unit_key,
 )
 
 
@@ -47,6 +50,34 @@ def read_finished(specs: list[RunSpec]) -> Iterator[dict[str, Any]]:
         yield run_record(spec, scores, FINISHED_EARLIER)
     if missing:
         console.err.print(f"[yellow]not finished at this budget, left out: {', '.join(missing)}[/]")
+
+
+def read_earlier(specs: list[RunSpec], asked: set[int]) -> Iterator[dict[str, Any]]:
+    """The finished runs of the planned arms at seeds this invocation did not ask for (an
+    earlier `--seeds 0-2` beside this `--seeds 3-4`), read back so that the report covers every
+    finished run in the folder. Unfinished runs, and runs of other settings, are left out and
+    named on stderr: a stale folder never stops the report of the runs just trained."""
+    left_out = []
+    for template in {unit_key(spec): spec for spec in specs}.values():
+        for seed in recorded_seeds(template.out_dir, template.task, template.arm, template.learner):
+            if seed in asked:
+                continue
+            spec = replace(template, seed=seed, force=False)  # --force retrains the asked seeds
+            try:
+                scores = finished_scores(spec)
+            except OverwriteError as error:
+                left_out.append(str(error).split("; pass")[0])
+                continue
+            if scores is None:
+                left_out.append(f"{spec.run_dir()} (not finished at {spec.steps:,} updates)")
+                continue
+            yield run_record(spec, scores, FINISHED_EARLIER)
+    if left_out:
+        console.err.print(
+            "[yellow]run folders of other seeds left out of the report: "
+            + "; ".join(left_out)
+            + "[/]"
+        )
 
 
 def run_ray(

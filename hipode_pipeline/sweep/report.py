@@ -267,8 +267,15 @@ def markdown(report: QualityReport) -> str:
         *([report.note, ""] if report.note else []),
         f"Budget: {budget['steps']:,} {learners} updates per run (batch 256), evaluation every "
         f"{budget['eval_every']:,} updates on {budget['eval_episodes']} episodes; seeds "
-        f"{budget['seeds']} in every arm. The result of a run is its last evaluation "
-        "(D4RL-normalized score), never the best one.",
+        f"{budget['seeds']} asked in every arm"
+        + (
+            f", and seeds {budget['earlier_seeds']} that earlier invocations finished in this "
+            "folder, read back (an arm's count is the length of its 'final score per seed')"
+            if budget.get("earlier_seeds")
+            else ""
+        )
+        + ". The result of a run is its last evaluation (D4RL-normalized score), never the "
+        "best one.",
         "",
         f"Machine: {machine['platform']}, {machine['cpu_count']} cores, torch "
         f"{machine['torch']}, device {machine['device']}, engine {machine['engine']} with "

@@ -59,6 +59,22 @@ def run_folder(out_dir: str | Path, task: str, arm: str, learner: str, seed: int
     return Path(out_dir) / task / arm / f"{learner}-seed{seed}"
 
 
+def recorded_seeds(out_dir: str | Path, task: str, arm: str, learner: str) -> list[int]:
+    """The seeds that have a run folder of this arm and learner under the sweep's folder."""
+    prefix = f"{learner}-seed"
+    folder = Path(out_dir) / task / arm
+    if not folder.is_dir():
+        return []
+    seeds = []
+    for path in folder.iterdir():
+        tail = path.name.removeprefix(prefix)
+        # only the names run_folder writes: "seed01" or "seed1.bak" is someone else's folder
+        if path.name.startswith(prefix) and path.is_dir() and tail.isascii() and tail.isdigit():
+            if str(int(tail)) == tail:
+                seeds.append(int(tail))
+    return sorted(seeds)
+
+
 def finished_scores(spec: RunSpec) -> dict[str, Any] | None:
     """The scores.json of a finished run with this spec's settings; None if there is none yet.
     A finished run with other settings is refused rather than silently reported."""
