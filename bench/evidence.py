@@ -20,6 +20,8 @@ and the report pools sources as strata, each run paired with the baseline on its
     python bench/evidence.py report                                    # the pooled tables
     python bench/evidence.py report --by-source                        # one row per source
     python bench/evidence.py report --by-stage-one-seed                # one row per artifact
+    python bench/evidence.py tables            # docs/evidence.md's marked tables from them
+    python bench/evidence.py tables --check    # fails naming each table the reports contradict
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 REPO = Path(__file__).resolve().parent.parent
 RUNS = Path("bench") / "evidence" / "runs"
 REPORT = Path("bench") / "evidence" / "report"
+DOC = Path("docs") / "evidence.md"
 # the budgets of the campaign on CPU, per learner (the issue: at least 200k updates for TD3+BC)
 CPU_STEPS = {"td3bc": 200_000, "iql": 200_000}
 EVAL_EVERY = 5000
@@ -108,6 +111,28 @@ def report(args: argparse.Namespace) -> list[str]:
     ]
 
 
+def tables(args: argparse.Namespace) -> int:
+    """Regenerate (or, with --check, compare) the marked tables of docs/evidence.md."""
+    from evidence_tables import TableError, regenerate
+
+    from hipode_pipeline.files import write_text_atomic
+
+    text = DOC.read_text()
+    try:
+        new, changed = regenerate(text, DOC, REPORT, RUNS, CPU_STEPS)
+    except TableError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    for where in changed:
+        print(f"{'differs' if args.check else 'regenerated'}: {where}")
+    if args.check:
+        return 1 if changed else 0
+    if changed:
+        write_text_atomic(DOC, new)
+    print(f"{DOC}: {len(changed)} table(s) regenerated")
+    return 0
+
+
 def main_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     commands = parser.add_subparsers(dest="command", required=True)
@@ -133,6 +158,8 @@ def main_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="One group per source and artifact (report/by-stage-one-seed/).",
     )
+    docs = commands.add_parser("tables", help="docs/evidence.md's marked tables from the reports.")
+    docs.add_argument("--check", action="store_true", help="Change nothing; fail if they differ.")
     return parser
 
 
@@ -140,6 +167,8 @@ def main(argv: list[str] | None = None) -> None:
     args = main_parser().parse_args(argv)
     os.chdir(REPO)  # records name paths relative to the checkout
     sys.path.insert(0, str(REPO))
+    if args.command == "tables":
+        sys.exit(tables(args))
     from hipode_pipeline.cli import app
 
     app(sweep(args) if args.command == "sweep" else report(args))
