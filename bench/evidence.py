@@ -27,6 +27,7 @@ and the report pools sources as strata, each run paired with the baseline on its
 from __future__ import annotations
 
 import argparse
+import difflib
 import os
 import sys
 from pathlib import Path
@@ -123,8 +124,10 @@ def tables(args: argparse.Namespace) -> int:
     except TableError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
-    for where in changed:
+    for where, old, new_rows in changed:
         print(f"{'differs' if args.check else 'regenerated'}: {where}")
+        if args.check:
+            print("\n".join(difflib.unified_diff(old, new_rows, "docs", "reports", lineterm="")))
     if args.check:
         return 1 if changed else 0
     if changed:

@@ -1,7 +1,7 @@
-"""The tables of docs/evidence.md, regenerated from the committed reports and run folders.
+"""The tables of docs/evidence.md, regenerated from the evidence reports and run folders.
 
-A table whose rows are generated carries a marker on the line above its header; the header
-and the separator stay as written, the rows below them are replaced:
+A table whose rows are generated carries a marker on the line right above its header; the
+header and the separator stay as written, the rows below them are replaced:
 
     <!-- evidence-rows: groups report=by-source learner=td3bc -->
     <!-- evidence-rows: comparisons report=pooled learner=iql task=walker2d-m-r -->
@@ -9,9 +9,10 @@ and the separator stay as written, the rows below them are replaced:
     <!-- evidence-rows: runs folder=hopper-m-r-7c80ddd9 learner=td3bc -->
 
 `groups`, `comparisons` and `across` read `hipode report`'s report.json (pooled, by-source or
-by-stage-one-seed, as `bench/evidence.py report` writes them); `runs` reads every run folder of a
-sweep finished at the campaign's budget. `python bench/evidence.py tables` rewrites the rows in
-place; with `--check` it changes nothing and fails naming each table that differs.
+by-stage-one-seed, as `bench/evidence.py report` writes them); `runs` lists a sweep folder's
+runs finished at the campaign's budget, and refuses when they are not the runs the pooled report
+holds (a run finished after the report was written). `python bench/evidence.py tables`
+rewrites the rows in place; with `--check` it changes nothing and fails on any difference.
 """
 
 from __future__ import annotations
@@ -22,7 +23,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from hipode_pipeline.report import difference_text, interval_text, probability_text, replicates_text
+
 MARKER = re.compile(r"<!-- evidence-rows: (?P<kind>[a-z]+)(?P<params>(?: [a-z]+=[^ ]+)*) -->")
+SEPARATOR = re.compile(r"\|(\s*:?-+:?\s*\|)+")
 REPORT_FILES = {
     "pooled": "report.json",
     "by-source": "by-source/report.json",
@@ -34,46 +38,26 @@ EXTRA_KEYS = {
     "by-source": ["source_sha256"],
     "by-stage-one-seed": ["source_sha256", "artifact_seed"],
 }
+# the keys each kind of marker takes (required, optional)
+KEYS = {
+    "groups": ({"report", "learner"}, {"task"}),
+    "comparisons": ({"report", "learner"}, {"task"}),
+    "across": ({"report", "learner"}, set()),
+    "runs": ({"folder", "learner"}, set()),
+}
 TASK_ORDER = ["hopper-m-r", "walker2d-m-r", "halfcheetah-m-r"]
 AUGMENTATION_ORDER = ["none", "hipode", "model-rollouts"]
 ARM_ORDER = ["eta0", "hipode"]  # then the other arm folders by name
 
 
 class TableError(ValueError):
-    """A marker or the data it names is wrong: the message names the file and line."""
+    """A marker, or the data it names, is wrong; regenerate() prefixes the doc's file:line."""
 
 
 def rank(order: list[str], value: Any) -> tuple[int, str]:
     """Known values in the order given, unknown ones after them by name."""
     text = str(value)
     return (order.index(text), "") if text in order else (len(order), text)
-
-
-def interval(measure: dict[str, Any], key: str) -> str:
-    low, high = measure[f"{key}_ci"]
-    return f"{measure[key]:.1f} [{low:.1f}, {high:.1f}]"
-
-
-def signed(value: float) -> str:
-    return f"{value:+.1f}".replace("+-", "-")
-
-
-def difference(measure: dict[str, Any]) -> str:
-    low, high = measure["ci"]
-    return f"{signed(measure['mean'])} [{signed(low)}, {signed(high)}]"
-
-
-def probability(measure: dict[str, Any]) -> str:
-    low, high = measure["ci"]
-    return f"{measure['probability']:.2f} [{low:.2f}, {high:.2f}]"
-
-
-def replicates(group: dict[str, Any]) -> str:
-    """'10 (5 × 2)': runs, then training seeds × stage-one seeds."""
-    text = f"{group['n_runs']} ({len(group['seeds'])}"
-    if group["artifact_seeds"]:
-        text += f" × {len(group['artifact_seeds'])}"
-    return text + ")"
 
 
 def row(cells: list[str]) -> str:
@@ -98,16 +82,16 @@ def extra_cells(key: dict[str, Any], report_name: str) -> list[str]:
 
 
 def group_rows(report: dict[str, Any], report_name: str, params: dict[str, str]) -> list[str]:
-    """One row per group: runs, last-eval mean and IQM, last-3 mean, curve mean, with CIs."""
+    """One row per group: runs, last-eval mean and IQM, last-k mean, curve mean, with CIs."""
     groups = sorted((g for g in report["groups"] if wanted(g, params)), key=sort_key)
     return [
         row(
-            [g["augmentation"], g["task"], *extra_cells(g, report_name), replicates(g)]
+            [g["augmentation"], g["task"], *extra_cells(g, report_name), replicates_text(g)]
             + [
-                interval(g["measures"]["last"], "mean"),
-                interval(g["measures"]["last"], "iqm"),
-                interval(g["measures"]["last_k_mean"], "mean"),
-                interval(g["measures"]["curve_mean"], "mean"),
+                interval_text(g["measures"]["last"], "mean"),
+                interval_text(g["measures"]["last"], "iqm"),
+                interval_text(g["measures"]["last_k_mean"], "mean"),
+                interval_text(g["measures"]["curve_mean"], "mean"),
             ]
         )
         for g in groups
@@ -120,16 +104,16 @@ def comparison_rows(report: dict[str, Any], report_name: str, params: dict[str, 
     rows = []
     for comparison in sorted(found, key=lambda c: sort_key(c["key"])):
         key, measures = comparison["key"], comparison["measures"]
-        last = measures["last"]
+        paired = measures["last"]["paired_difference"]
         rows.append(
             row(
                 [key["augmentation"], key["task"], *extra_cells(key, report_name)]
                 + [
-                    str(last["paired_difference"]["pairs"]),
-                    difference(last["paired_difference"]),
-                    probability(last["probability_of_improvement"]),
-                    difference(measures["last_k_mean"]["paired_difference"]),
-                    difference(measures["curve_mean"]["paired_difference"]),
+                    "0" if paired is None else str(paired["pairs"]),
+                    difference_text(paired),
+                    probability_text(measures["last"]["probability_of_improvement"]),
+                    difference_text(measures["last_k_mean"]["paired_difference"]),
+                    difference_text(measures["curve_mean"]["paired_difference"]),
                 ]
             )
         )
@@ -144,45 +128,78 @@ def across_rows(report: dict[str, Any], report_name: str, params: dict[str, str]
         if fields.get("learner") != params["learner"]:
             continue
         measures = entry["measures"]
+        last = measures.get("last")
         rows.append(
             row(
                 [
                     fields["augmentation"],
                     ", ".join(entry["tasks"]),
-                    str(measures["last"]["pairs"]),
-                    difference(measures["last"]),
-                    difference(measures["last_k_mean"]),
-                    difference(measures["curve_mean"]),
+                    "0" if last is None else str(last["pairs"]),
+                    difference_text(last),
+                    difference_text(measures.get("last_k_mean")),
+                    difference_text(measures.get("curve_mean")),
                 ]
             )
         )
     return rows
 
 
-def run_rows(runs: Path, params: dict[str, str], steps: int) -> list[str]:
-    """One row per arm folder: each finished run's last eval / last 3 / curve mean, and speed."""
+def reported_runs(reports: Path) -> set[str]:
+    """The run folders the pooled report holds, as it names them (relative to the checkout)."""
+    report = read_report(reports / REPORT_FILES["pooled"])
+    return {run for group in report["groups"] for run in group["runs"]}
+
+
+def run_rows(runs: Path, reports: Path, params: dict[str, str], steps: int) -> list[str]:
+    """One row per arm folder: each finished run's last eval / last k / curve mean, and speed.
+    `runs` is the runs folder as the reports name it (relative to the working directory)."""
     from hipode_pipeline.run_folder import scores_if_finished
+    from hipode_pipeline.sweep.report import curve_mean, window_score
     from hipode_pipeline.sweep.worker import recorded_seeds, run_folder
 
     folder, learner = runs / params["folder"], params["learner"]
     task = params["folder"].rsplit("-", 1)[0]  # <task>-<sha8>
     if not (folder / task).is_dir():
         raise TableError(f"folder={params['folder']}: expected {folder / task} to exist")
-    rows = []
-    arms = sorted(p.name for p in (folder / task).iterdir() if p.is_dir())
+    in_report = reported_runs(reports)
+    rows, unreported = [], []
+    arms = [p.name for p in (folder / task).iterdir() if p.is_dir()]
     for arm in sorted(arms, key=lambda name: rank(ARM_ORDER, name)):
         cells, speeds = [], []
         for seed in recorded_seeds(folder, task, arm, learner):
-            scores = scores_if_finished(run_folder(folder, task, arm, learner, seed), steps)
+            run_dir = run_folder(folder, task, arm, learner, seed)
+            scores = scores_if_finished(run_dir, steps)
             if scores is None:
                 continue
-            curve = [e["score_mean"] for e in scores["evaluations"] if e["step"] <= steps]
-            last3 = sum(curve[-3:]) / len(curve[-3:])
-            cells.append(f"{seed}: {curve[-1]:.1f} / {last3:.1f} / {sum(curve) / len(curve):.1f}")
+            if run_dir.as_posix() not in in_report:
+                unreported.append(run_dir.as_posix())
+            curve = [
+                [e["step"], e["score_mean"]] for e in scores["evaluations"] if e["step"] <= steps
+            ]
+            record = {"curve": curve}
+            last, window, mean = curve[-1][1], window_score(record), curve_mean(record)
+            cells.append(f"{seed}: {last:.1f} / {window:.1f} / {mean:.1f}")
             speeds.append(f"{scores['updates_per_second']:.0f}")
         if cells:
             rows.append(row([arm, "; ".join(cells), ", ".join(speeds)]))
+    if unreported:
+        raise TableError(
+            f"runs finished after {reports / REPORT_FILES['pooled']} was written: "
+            f"{', '.join(unreported)}; run `python bench/evidence.py report` (and --by-source, "
+            "--by-stage-one-seed) first"
+        )
     return rows
+
+
+def read_report(path: Path) -> dict[str, Any]:
+    if not path.is_file():
+        raise TableError(f"{path} is missing; run `python bench/evidence.py report` first")
+    try:
+        return json.loads(path.read_text())
+    except ValueError as error:
+        raise TableError(
+            f"{path}: expected a report.json, found unreadable JSON ({error})"
+        ) from None
 
 
 KINDS: dict[str, Callable[..., list[str]]] = {
@@ -195,32 +212,40 @@ KINDS: dict[str, Callable[..., list[str]]] = {
 def table_rows(
     kind: str, params: dict[str, str], reports: Path, runs: Path, steps: dict[str, int]
 ) -> list[str]:
-    """The rows a marker asks for (TableError on a marker that names nothing)."""
-    if "learner" not in params:
-        raise TableError("expected learner=<name>")
-    if kind == "runs":
-        if "folder" not in params or params["learner"] not in steps:
-            raise TableError(f"runs: expected folder=<task>-<sha8> and learner in {sorted(steps)}")
-        return run_rows(runs, params, steps[params["learner"]])
-    if kind not in KINDS:
-        raise TableError(f"expected a kind in {sorted([*KINDS, 'runs'])}, found {kind!r}")
-    name = params.get("report", "")
+    """The rows a marker asks for (TableError on a marker that names nothing or no rows)."""
+    if kind not in KEYS:
+        raise TableError(f"expected a kind in {sorted(KEYS)}, found {kind!r}")
+    required, optional = KEYS[kind]
+    if not required <= set(params) <= required | optional:
+        raise TableError(
+            f"{kind}: expected keys {sorted(required)} (optional: {sorted(optional)}), "
+            f"found {sorted(params)}"
+        )
+    name = params.get("report", "pooled")
     if name not in REPORT_FILES:
         raise TableError(f"report: expected one of {sorted(REPORT_FILES)}, found {name!r}")
-    path = reports / REPORT_FILES[name]
-    if not path.is_file():
-        raise TableError(f"report={name}: {path} is missing; run `bench/evidence.py report`")
-    rows = KINDS[kind](json.loads(path.read_text()), name, params)
+    where = reports / REPORT_FILES[name]
+    try:
+        if kind == "runs":
+            if params["learner"] not in steps:
+                raise TableError(f"learner: expected one of {sorted(steps)}")
+            rows = run_rows(runs, reports, params, steps[params["learner"]])
+        else:
+            rows = KINDS[kind](read_report(where), name, params)
+    except (KeyError, TypeError, IndexError, ZeroDivisionError) as error:
+        raise TableError(
+            f"{where if kind != 'runs' else runs}: unexpected content ({error!r})"
+        ) from None
     if not rows:
-        raise TableError(f"{path}: no rows for {params}")
+        raise TableError(f"no rows for {kind} {params}")
     return rows
 
 
 def regenerate(
     text: str, doc: Path, reports: Path, runs: Path, steps: dict[str, int]
-) -> tuple[str, list[str]]:
-    """The document with every marked table's rows regenerated, and the markers whose rows
-    changed (as 'doc:line marker')."""
+) -> tuple[str, list[tuple[str, list[str], list[str]]]]:
+    """The document with every marked table's rows regenerated, and for each table that
+    changed: 'doc:line marker', its old rows and its new rows."""
     lines = text.split("\n")
     changed = []
     index = 0
@@ -232,19 +257,26 @@ def regenerate(
             index += 1
             continue
         where = f"{doc}:{index + 1}"
-        header = index + 1
-        if header + 1 >= len(lines) or not lines[header + 1].startswith("|"):
-            raise TableError(f"{where}: expected a table header and separator below the marker")
+        header, separator = index + 1, index + 2
+        if (
+            separator >= len(lines)
+            or not lines[header].startswith("|")
+            or not SEPARATOR.fullmatch(lines[separator].strip())
+        ):
+            raise TableError(
+                f"{where}: expected a table header and a |---| separator on the two lines "
+                "right below the marker"
+            )
         params = dict(part.split("=", 1) for part in match["params"].split())
         try:
             rows = table_rows(match["kind"], params, reports, runs, steps)
         except TableError as error:
             raise TableError(f"{where}: {error}") from None
-        start = end = header + 2
+        start = end = separator + 1
         while end < len(lines) and lines[end].startswith("|"):
             end += 1
         if lines[start:end] != rows:
-            changed.append(f"{where} {lines[index].strip()}")
+            changed.append((f"{where} {lines[index].strip()}", lines[start:end], rows))
             lines[start:end] = rows
         index = start + len(rows)
     return "\n".join(lines), changed

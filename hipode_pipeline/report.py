@@ -474,9 +474,21 @@ def mean_curve(runs: list[Run], reps: int, seed: int) -> dict[str, list]:
     }
 
 
-def _interval(m: dict[str, Any], name: str) -> str:
+def interval_text(m: dict[str, Any], name: str) -> str:
+    """A group measure's statistic with its interval: '35.9 [28.7, 42.4]'."""
     low, high = m[f"{name}_ci"]
     return f"{m[name]:.1f} [{low:.1f}, {high:.1f}]"
+
+
+def difference_text(d: dict[str, Any] | None) -> str:
+    """A (paired or across-task) mean difference with its interval: '-16.2 [-22.9, -9.1]';
+    '-' where there is none (no pairs)."""
+    return "-" if d is None else f"{d['mean']:+.1f} [{d['ci'][0]:+.1f}, {d['ci'][1]:+.1f}]"
+
+
+def probability_text(p: dict[str, Any]) -> str:
+    """P(improvement) with its interval: '0.02 [0.00, 0.12]'."""
+    return f"{p['probability']:.2f} [{p['ci'][0]:.2f}, {p['ci'][1]:.2f}]"
 
 
 def table_rows(report: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
@@ -488,10 +500,10 @@ def table_rows(report: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
         columns += [f"{text}: IQM [95% CI]", f"{text}: mean [95% CI]"]
     rows = []
     for group in report["groups"]:
-        row = [_shown(group[k]) for k in by] + [_replicates(group)]
+        row = [_shown(group[k]) for k in by] + [replicates_text(group)]
         for name in MEASURES:
             m = group["measures"][name]
-            row += [_interval(m, "iqm"), _interval(m, "mean")]
+            row += [interval_text(m, "iqm"), interval_text(m, "mean")]
         rows.append(row)
     return columns, rows
 
@@ -506,14 +518,9 @@ def comparison_rows(report: dict[str, Any]) -> tuple[list[str], list[list[str]]]
         row = [entry["arm"], entry["baseline"]]
         for name in MEASURES:
             m = entry["measures"][name]
-            p = m["probability_of_improvement"]
-            row.append(f"{p['probability']:.2f} [{p['ci'][0]:.2f}, {p['ci'][1]:.2f}]")
+            row.append(probability_text(m["probability_of_improvement"]))
             d = m["paired_difference"]
-            row.append(
-                "-"
-                if d is None
-                else f"{d['mean']:+.1f} [{d['ci'][0]:+.1f}, {d['ci'][1]:+.1f}] ({d['pairs']} pairs)"
-            )
+            row.append(difference_text(d) + ("" if d is None else f" ({d['pairs']} pairs)"))
         rows.append(row)
     return columns, rows
 
@@ -526,15 +533,12 @@ def across_task_rows(report: dict[str, Any]) -> tuple[list[str], list[list[str]]
     for entry in report.get("across_tasks", []):
         row = [entry["arm"], ", ".join(entry["tasks"])]
         for name in MEASURES:
-            m = entry["measures"].get(name)
-            row.append(
-                "-" if m is None else f"{m['mean']:+.1f} [{m['ci'][0]:+.1f}, {m['ci'][1]:+.1f}]"
-            )
+            row.append(difference_text(entry["measures"].get(name)))
         rows.append(row)
     return columns, rows
 
 
-def _replicates(group: dict[str, Any]) -> str:
+def replicates_text(group: dict[str, Any]) -> str:
     """How many runs a group holds and what they vary: training and stage-one seeds."""
     text = f"{group['n_runs']} ({len(group['seeds'])}"
     if group["artifact_seeds"]:

@@ -66,22 +66,25 @@ def test_report_by_stage_one_seed_splits_each_source_by_artifact():
 REPO = BENCH.parent
 
 
-def regenerate(text, runs=REPO / evidence.RUNS):
-    return evidence_tables.regenerate(
-        text, Path("doc.md"), REPO / evidence.REPORT, runs, evidence.CPU_STEPS
+def regenerate(text, reports=evidence.REPORT, runs=evidence.RUNS):
+    """evidence_tables.regenerate as `bench/evidence.py tables` calls it: paths as the reports
+    name them, relative to the working directory."""
+    return evidence_tables.regenerate(text, Path("doc.md"), reports, runs, evidence.CPU_STEPS)
+
+
+def test_the_docs_tables_are_the_reports_and_runs_of_the_checkout(monkeypatch):
+    monkeypatch.chdir(REPO)
+    text = evidence.DOC.read_text()
+    assert text.count("<!-- evidence-rows:") >= 15
+    _, changed = regenerate(text)
+    assert changed == [], "run `python bench/evidence.py tables`: " + "; ".join(
+        where for where, _, _ in changed
     )
 
 
-def test_the_docs_tables_are_the_committed_reports_and_runs():
-    doc = REPO / evidence.DOC
-    text = doc.read_text()
-    assert text.count("<!-- evidence-rows:") >= 15
-    _, changed = regenerate(text)
-    assert changed == [], "run `python bench/evidence.py tables`: " + "; ".join(changed)
-
-
-def test_marked_rows_are_replaced_from_the_report_and_the_rest_kept():
-    report = json.loads((REPO / evidence.REPORT / "report.json").read_text())
+def test_marked_rows_are_replaced_from_the_report_and_the_rest_kept(monkeypatch):
+    monkeypatch.chdir(REPO)
+    report = json.loads((evidence.REPORT / "report.json").read_text())
     group = next(
         g
         for g in report["groups"]
@@ -100,7 +103,8 @@ def test_marked_rows_are_replaced_from_the_report_and_the_rest_kept():
     text, changed = regenerate(stale)
     lines = text.split("\n")
     assert lines[:4] == stale.split("\n")[:4] and lines[-1] == "after"
-    assert changed == ["doc.md:2 " + stale.split("\n")[1]]
+    assert [where for where, _, _ in changed] == ["doc.md:2 " + stale.split("\n")[1]]
+    assert changed[0][1] == [stale.split("\n")[4]]
     rows = [line for line in lines if line.startswith("| none")]
     last = group["measures"]["last"]
     assert rows[0].startswith(f"| none | hopper-m-r | {group['n_runs']} (")
@@ -113,39 +117,60 @@ def write_scores(run_dir, steps, curve, speed=100.0):
     evaluations = [{"step": 5000 * (i + 1), "score_mean": s} for i, s in enumerate(curve)]
     scores = {"steps": steps, "evaluations": evaluations, "updates_per_second": speed}
     (run_dir / "scores.json").write_text(json.dumps(scores))
+    return run_dir.as_posix()
 
 
-def test_run_rows_list_finished_runs_by_seed_number(tmp_path):
+def test_run_rows_list_the_reported_finished_runs_by_seed_number(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
     budget = evidence.CPU_STEPS["iql"]
-    arms = tmp_path / "walker2d-m-r-0123abcd" / "walker2d-m-r"
-    write_scores(arms / "hipode" / "iql-seed10", budget, [1.0, 2.0, 6.0], speed=90)
-    write_scores(arms / "hipode" / "iql-seed2", budget, [3.0, 3.0])
+    arms = Path("runs") / "walker2d-m-r-0123abcd" / "walker2d-m-r"
+    reported = [
+        write_scores(arms / "hipode" / "iql-seed10", budget, [1.0, 2.0, 6.0], speed=90),
+        write_scores(arms / "hipode" / "iql-seed2", budget, [3.0, 3.0]),
+        write_scores(arms / "eta0" / "iql-seed2", budget, [4.0]),
+    ]
     write_scores(arms / "hipode" / "iql-seed3", budget - 5000, [9.0])  # unfinished
     write_scores(arms / "hipode" / "iql-seed02", budget, [7.0])  # not a name the sweep writes
-    write_scores(arms / "eta0" / "iql-seed2", budget, [4.0])
     write_scores(arms / "eta0" / "td3bc-seed2", evidence.CPU_STEPS["td3bc"], [5.0])
+    Path("report").mkdir()
+    pooled = {"groups": [{"runs": reported[:2]}, {"runs": reported[2:]}]}
+    (Path("report") / "report.json").write_text(json.dumps(pooled))
     marker = "<!-- evidence-rows: runs folder=walker2d-m-r-0123abcd learner=iql -->"
-    text, changed = regenerate(
-        f"{marker}\n| arm | runs | updates/s |\n| --- | --- | --- |", tmp_path
-    )
+    table = f"{marker}\n| arm | runs | updates/s |\n| --- | --- | --- |"
+    text, _ = regenerate(table, Path("report"), Path("runs"))
     assert text.split("\n")[3:] == [
         "| eta0 | 2: 4.0 / 4.0 / 4.0 | 100 |",
         "| hipode | 2: 3.0 / 3.0 / 3.0; 10: 6.0 / 3.0 / 3.0 | 100, 90 |",
     ]
+    # a run that finished after the report was written: the tables wait for the report
+    write_scores(arms / "eta0" / "iql-seed4", budget, [8.0])
+    with pytest.raises(evidence_tables.TableError, match="finished after .*report.json"):
+        regenerate(table, Path("report"), Path("runs"))
 
 
 @pytest.mark.parametrize(
     ("marker", "message"),
     [
-        ("<!-- evidence-rows: groups report=pooled -->", "expected learner=<name>"),
+        ("<!-- evidence-rows: groups report=pooled -->", "expected keys"),
+        ("<!-- evidence-rows: groups report=pooled learner=td3bc tsak=x -->", "expected keys"),
         ("<!-- evidence-rows: groups report=latest learner=td3bc -->", "report: expected one of"),
         ("<!-- evidence-rows: plots report=pooled learner=td3bc -->", "expected a kind in"),
         ("<!-- evidence-rows: groups report=pooled learner=sac -->", "no rows for"),
         ("<!-- evidence-rows: runs folder=ant-m-r-00000000 learner=iql -->", "to exist"),
+        ("<!-- evidence-rows: runs folder=hopper-m-r-f1a408d8 learner=iql -->", "no rows for"),
         ("<!-- evidence-rows: groups report = pooled -->", "malformed marker"),
     ],
 )
-def test_a_wrong_marker_is_named_with_its_line(marker, message):
+def test_a_wrong_marker_is_named_with_its_line(marker, message, monkeypatch):
+    monkeypatch.chdir(REPO)
     with pytest.raises(evidence_tables.TableError, match=message) as error:
         regenerate(f"text\n{marker}\n| a |\n|---|\n| row |")
     assert str(error.value).startswith("doc.md:2: ")
+
+
+@pytest.mark.parametrize("below", ["\n| a |", "\n\n| a |\n|---|\n| row |", "\n| a |\n| b |"])
+def test_a_marker_without_its_table_right_below_is_refused(below, monkeypatch):
+    monkeypatch.chdir(REPO)
+    marker = "<!-- evidence-rows: groups report=pooled learner=td3bc -->"
+    with pytest.raises(evidence_tables.TableError, match="separator on the two lines"):
+        regenerate(f"text\n{marker}{below}")

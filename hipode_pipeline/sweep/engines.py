@@ -65,13 +65,17 @@ def read_earlier(specs: list[RunSpec], asked: set[int]) -> Iterator[dict[str, An
             spec = replace(template, seed=seed, force=False)  # --force retrains the asked seeds
             try:
                 scores = finished_scores(spec)
+                record = None if scores is None else run_record(spec, scores, FINISHED_EARLIER)
             except OverwriteError as error:
-                left_out.append(str(error).split("; pass")[0])
+                left_out.append(str(error).split("; pass")[0])  # --force retrains asked seeds only
                 continue
-            if scores is None:
+            except (KeyError, TypeError, IndexError) as error:
+                left_out.append(f"{spec.run_dir()} (unreadable scores.json: {error!r})")
+                continue
+            if record is None:
                 left_out.append(f"{spec.run_dir()} (not finished at {spec.steps:,} updates)")
                 continue
-            yield run_record(spec, scores, FINISHED_EARLIER)
+            yield record
     if left_out:
         console.err.print(
             "[yellow]run folders of other seeds left out of the report: "
