@@ -17,6 +17,7 @@ rewrites the rows in place; with `--check` it changes nothing and fails on any d
 
 from __future__ import annotations
 
+import functools
 import json
 import re
 from collections.abc import Callable
@@ -25,6 +26,7 @@ from typing import Any
 
 from hipode_pipeline.report import difference_text, interval_text, probability_text, replicates_text
 
+ReportReader = Callable[[Path], dict[str, Any]]  # a report.json's path -> its content
 MARKER = re.compile(r"<!-- evidence-rows: (?P<kind>[a-z]+)(?P<params>(?: [a-z]+=[^ ]+)*) -->")
 SEPARATOR = re.compile(r"\|(\s*:?-+:?\s*\|)+")
 REPORT_FILES = {
@@ -144,13 +146,9 @@ def across_rows(report: dict[str, Any], report_name: str, params: dict[str, str]
     return rows
 
 
-def reported_runs(reports: Path) -> set[str]:
-    """The run folders the pooled report holds, as it names them (relative to the checkout)."""
-    report = read_report(reports / REPORT_FILES["pooled"])
-    return {run for group in report["groups"] for run in group["runs"]}
-
-
-def run_rows(runs: Path, reports: Path, params: dict[str, str], steps: int) -> list[str]:
+def run_rows(
+    runs: Path, pooled: Path, read: ReportReader, params: dict[str, str], steps: int
+) -> list[str]:
     """One row per arm folder: each finished run's last eval / last k / curve mean, and speed.
     `runs` is the runs folder as the reports name it (relative to the working directory)."""
     from hipode_pipeline.run_folder import scores_if_finished
@@ -161,7 +159,8 @@ def run_rows(runs: Path, reports: Path, params: dict[str, str], steps: int) -> l
     task = params["folder"].rsplit("-", 1)[0]  # <task>-<sha8>
     if not (folder / task).is_dir():
         raise TableError(f"folder={params['folder']}: expected {folder / task} to exist")
-    in_report = reported_runs(reports)
+    # the run folders the pooled report holds, as it names them (relative to the checkout)
+    in_report = {run for group in read(pooled)["groups"] for run in group["runs"]}
     rows, unreported = [], []
     arms = [p.name for p in (folder / task).iterdir() if p.is_dir()]
     for arm in sorted(arms, key=lambda name: rank(ARM_ORDER, name)):
@@ -184,7 +183,7 @@ def run_rows(runs: Path, reports: Path, params: dict[str, str], steps: int) -> l
             rows.append(row([arm, "; ".join(cells), ", ".join(speeds)]))
     if unreported:
         raise TableError(
-            f"runs finished after {reports / REPORT_FILES['pooled']} was written: "
+            f"runs finished after {pooled} was written: "
             f"{', '.join(unreported)}; run `python bench/evidence.py report` (and --by-source, "
             "--by-stage-one-seed) first"
         )
@@ -210,7 +209,12 @@ KINDS: dict[str, Callable[..., list[str]]] = {
 
 
 def table_rows(
-    kind: str, params: dict[str, str], reports: Path, runs: Path, steps: dict[str, int]
+    kind: str,
+    params: dict[str, str],
+    reports: Path,
+    runs: Path,
+    steps: dict[str, int],
+    read: ReportReader = read_report,
 ) -> list[str]:
     """The rows a marker asks for (TableError on a marker that names nothing or no rows)."""
     if kind not in KEYS:
@@ -229,9 +233,10 @@ def table_rows(
         if kind == "runs":
             if params["learner"] not in steps:
                 raise TableError(f"learner: expected one of {sorted(steps)}")
-            rows = run_rows(runs, reports, params, steps[params["learner"]])
+            pooled = reports / REPORT_FILES["pooled"]
+            rows = run_rows(runs, pooled, read, params, steps[params["learner"]])
         else:
-            rows = KINDS[kind](read_report(where), name, params)
+            rows = KINDS[kind](read(where), name, params)
     except (KeyError, TypeError, IndexError, ZeroDivisionError) as error:
         raise TableError(
             f"{where if kind != 'runs' else runs}: unexpected content ({error!r})"
@@ -248,6 +253,7 @@ def regenerate(
     changed: 'doc:line marker', its old rows and its new rows."""
     lines = text.split("\n")
     changed = []
+    read = functools.cache(read_report)  # each report once, however many tables quote it
     index = 0
     while index < len(lines):
         match = MARKER.fullmatch(lines[index].strip())
@@ -269,7 +275,7 @@ def regenerate(
             )
         params = dict(part.split("=", 1) for part in match["params"].split())
         try:
-            rows = table_rows(match["kind"], params, reports, runs, steps)
+            rows = table_rows(match["kind"], params, reports, runs, steps, read)
         except TableError as error:
             raise TableError(f"{where}: {error}") from None
         start = end = separator + 1

@@ -380,7 +380,7 @@ def test_a_sweep_of_new_seeds_reports_every_finished_run_of_its_folder(tmp_path,
     assert difference["seeds"] == [0, 1]
     left_out = " ".join(later.stderr.split())
     assert "td3bc-seed5 (not finished at 10 updates)" in left_out
-    assert "td3bc-seed7: holds a finished run with other settings (seed differ)" in left_out
+    assert "td3bc-seed7 (other settings: seed differ)" in left_out
     assert "seed01" not in left_out
     markdown = (tmp_path / "results" / "quality.md").read_text()
     assert "seeds [1] asked in every arm, and seeds [0] that earlier invocations finished" in (

@@ -11,10 +11,11 @@ from multiprocessing import get_context
 from typing import Any
 
 from hipode_pipeline import console
-from hipode_pipeline.errors import HipodeError, OverwriteError
+from hipode_pipeline.errors import HipodeError
 from hipode_pipeline.sweep.worker import (
     FINISHED_EARLIER,
     RunSpec,
+    expected_settings,
     finished_scores,
     recorded_seeds,
     run_record,
@@ -52,30 +53,38 @@ def read_finished(specs: list[RunSpec]) -> Iterator[dict[str, Any]]:
         console.err.print(f"[yellow]not finished at this budget, left out: {', '.join(missing)}[/]")
 
 
+def read_back(spec: RunSpec) -> tuple[dict[str, Any] | None, str]:
+    """A run folder's record if it is finished with the spec's settings, else why it is not."""
+    from hipode_pipeline.run_folder import differing_settings, scores_if_finished
+
+    run_dir = spec.run_dir()
+    try:
+        scores = scores_if_finished(run_dir, spec.steps)
+        if scores is None:
+            return None, f"{run_dir} (not finished at {spec.steps:,} updates)"
+        differing = differing_settings(run_dir, expected_settings(spec))
+        if differing:
+            return None, f"{run_dir} (other settings: {', '.join(differing)} differ)"
+        return run_record(spec, scores, FINISHED_EARLIER), ""
+    except (HipodeError, KeyError, TypeError, IndexError) as error:
+        return None, f"{run_dir} (unreadable: {error!r})"
+
+
 def read_earlier(specs: list[RunSpec], asked: set[int]) -> Iterator[dict[str, Any]]:
     """The finished runs of the planned arms at seeds this invocation did not ask for (an
     earlier `--seeds 0-2` beside this `--seeds 3-4`), read back so that the report covers every
-    finished run in the folder. Unfinished runs, and runs of other settings, are left out and
-    named on stderr: a stale folder never stops the report of the runs just trained."""
+    finished run in the folder. Unfinished runs, runs of other settings and unreadable ones are
+    left out and named on stderr: a stale folder never stops the report of the runs just
+    trained (and --force, which retrains the asked seeds, does not apply to them)."""
     left_out = []
     for template in {unit_key(spec): spec for spec in specs}.values():
         for seed in recorded_seeds(template.out_dir, template.task, template.arm, template.learner):
-            if seed in asked:
-                continue
-            spec = replace(template, seed=seed, force=False)  # --force retrains the asked seeds
-            try:
-                scores = finished_scores(spec)
-                record = None if scores is None else run_record(spec, scores, FINISHED_EARLIER)
-            except OverwriteError as error:
-                left_out.append(str(error).split("; pass")[0])  # --force retrains asked seeds only
-                continue
-            except (KeyError, TypeError, IndexError) as error:
-                left_out.append(f"{spec.run_dir()} (unreadable scores.json: {error!r})")
-                continue
-            if record is None:
-                left_out.append(f"{spec.run_dir()} (not finished at {spec.steps:,} updates)")
-                continue
-            yield record
+            if seed not in asked:
+                record, why = read_back(replace(template, seed=seed))
+                if record is None:
+                    left_out.append(why)
+                else:
+                    yield record
     if left_out:
         console.err.print(
             "[yellow]run folders of other seeds left out of the report: "

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -60,29 +61,19 @@ def run_folder(out_dir: str | Path, task: str, arm: str, learner: str, seed: int
 
 
 def recorded_seeds(out_dir: str | Path, task: str, arm: str, learner: str) -> list[int]:
-    """The seeds that have a run folder of this arm and learner under the sweep's folder."""
-    prefix = f"{learner}-seed"
+    """The seeds that have a run folder of this arm and learner under the sweep's folder: only
+    names run_folder writes ("seed01" or "seed1.bak" is someone else's folder)."""
     folder = Path(out_dir) / task / arm
+    name = re.compile(rf"{re.escape(learner)}-seed(0|[1-9][0-9]*)")
     if not folder.is_dir():
         return []
-    seeds = []
-    for path in folder.iterdir():
-        tail = path.name.removeprefix(prefix)
-        # only the names run_folder writes: "seed01" or "seed1.bak" is someone else's folder
-        if path.name.startswith(prefix) and path.is_dir() and tail.isascii() and tail.isdigit():
-            if str(int(tail)) == tail:
-                seeds.append(int(tail))
-    return sorted(seeds)
+    matches = (name.fullmatch(path.name) for path in folder.iterdir() if path.is_dir())
+    return sorted(int(match[1]) for match in matches if match)
 
 
-def finished_scores(spec: RunSpec) -> dict[str, Any] | None:
-    """The scores.json of a finished run with this spec's settings; None if there is none yet.
-    A finished run with other settings is refused rather than silently reported."""
-    from hipode_pipeline.run_folder import finished_scores as folder_scores
-
-    if spec.force:
-        return None
-    expected = {
+def expected_settings(spec: RunSpec) -> dict[str, Any]:
+    """What a finished run's config.json must say to count as this spec's run."""
+    return {
         "learner": spec.learner,
         "data": spec.data,
         "eta": spec.eta,
@@ -92,7 +83,16 @@ def finished_scores(spec: RunSpec) -> dict[str, Any] | None:
         "eval_episodes": spec.eval_episodes,
         "artifact_checksum": spec.artifact_checksum,
     }
-    return folder_scores(spec.run_dir(), spec.steps, expected)
+
+
+def finished_scores(spec: RunSpec) -> dict[str, Any] | None:
+    """The scores.json of a finished run with this spec's settings; None if there is none yet.
+    A finished run with other settings is refused rather than silently reported."""
+    from hipode_pipeline.run_folder import finished_scores as folder_scores
+
+    if spec.force:
+        return None
+    return folder_scores(spec.run_dir(), spec.steps, expected_settings(spec))
 
 
 def evaluation_at(evaluations: list[dict[str, Any]], step: int, run_dir: Path) -> dict[str, Any]:
