@@ -7,11 +7,15 @@ header and the separator stay as written, the rows below them are replaced:
     <!-- evidence-rows: comparisons report=pooled learner=iql task=walker2d-m-r -->
     <!-- evidence-rows: across report=pooled learner=td3bc -->
     <!-- evidence-rows: runs folder=hopper-m-r-7c80ddd9 learner=td3bc -->
+    <!-- evidence-rows: authenticity folder=hopper-m-r-7c80ddd9 learner=td3bc -->
 
 `groups`, `comparisons` and `across` read `hipode report`'s report.json (pooled, by-source or
 by-stage-one-seed, as `bench/evidence.py report` writes them); `runs` lists a sweep folder's
 runs finished at the campaign's budget, and refuses when they are not the runs the pooled report
-holds (a run finished after the report was written). `python bench/evidence.py tables`
+holds (a run finished after the report was written); `authenticity` puts the source beside
+each artifact of a sweep folder: the sweep's quality.json (rewards, real rewards at the same
+states, terminal share) and each arm's `hipode verify` report under report/<learner>/verify/
+(next-state error against the simulator, share within tolerance, novelty). `python bench/evidence.py tables`
 rewrites the rows in place; with `--check` it changes nothing and fails on any difference.
 """
 
@@ -46,6 +50,7 @@ KEYS = {
     "comparisons": ({"report", "learner"}, {"task"}),
     "across": ({"report", "learner"}, set()),
     "runs": ({"folder", "learner"}, set()),
+    "authenticity": ({"folder", "learner"}, set()),
 }
 TASK_ORDER = ["hopper-m-r", "walker2d-m-r", "halfcheetah-m-r"]
 AUGMENTATION_ORDER = ["none", "hipode", "model-rollouts"]
@@ -190,15 +195,81 @@ def run_rows(
     return rows
 
 
+def stage_one_seed(arm: dict[str, Any], command: str) -> int:
+    """An arm's stage-one seed: its own, else the sweep's --artifact-seed (default 0)."""
+    seed = (arm.get("augment") or {}).get("seed")
+    if seed is None:
+        given = re.search(r"--artifact-seed (\d+)", command)
+        seed = int(given[1]) if given else 0
+    return seed
+
+
+def verify_report(folder: Path, arm: str) -> dict[str, Any]:
+    """The one `hipode verify` report of an arm's artifact in a sweep's report folder."""
+    found = sorted((folder / arm).glob("*.verify.json"))
+    if len(found) != 1:
+        raise TableError(
+            f"{folder / arm}: expected one *.verify.json, found {len(found)}; run `hipode verify "
+            f"<the arm's artifact> --no-baseline --sample 2000 --out-dir {folder / arm}`"
+        )
+    return read_report(found[0])
+
+
+def authenticity_rows(runs: Path, read: ReportReader, params: dict[str, str]) -> list[str]:
+    """The source, then one row per artifact of the folder's arms: its reward beside the real
+    reward at the same states, terminal share, next-state error against the simulator (median on
+    rows with exact ground truth, source stds), share within tolerance and novelty (median)."""
+    results = runs / params["folder"] / "report" / params["learner"]
+    quality = read(results / "quality.json")
+    task = params["folder"].rsplit("-", 1)[0]  # <task>-<sha8>
+    source = quality.get("sources", {}).get(task)
+    if source is None:
+        raise TableError(
+            f"{results / 'quality.json'}: expected the source of {task} under 'sources'; "
+            f"rewrite it with `python bench/evidence.py sweep {task} --learner "
+            f"{params['learner']} --report-only` (it needs the source)"
+        )
+    if not source["sha256"].startswith(params["folder"].rsplit("-", 1)[1]):
+        raise TableError(f"{results / 'quality.json'}: its source is not {params['folder']}'s")
+    rows = [row(["source", "", f"{source['reward_mean']:.3f}", terminal_text(source)] + [""] * 3)]
+    arms = [a for a in quality["arms"][task] if a["learner"] == params["learner"]]
+    for arm in sorted(arms, key=lambda a: rank(ARM_ORDER, a["name"])):
+        synthetic = arm["synthetic"]
+        if synthetic is None:
+            continue
+        checked = verify_report(results / "verify", arm["name"])["hipode"]
+        rows.append(
+            row(
+                [
+                    (arm.get("augment") or {}).get("method", "hipode"),
+                    str(stage_one_seed(arm, quality["command"])),
+                    f"{synthetic['reward_mean']:.3f} "
+                    f"({synthetic['source_reward_mean_same_states']:.3f})",
+                    terminal_text(synthetic),
+                    f"{checked['next_state_error_median_exact_rows']:.4f}",
+                    f"{100 * checked['within_tolerance']:.2f} %",
+                    f"{checked['novelty_median']:.3f}",
+                ]
+            )
+        )
+    return rows
+
+
+def terminal_text(stats: dict[str, Any]) -> str:
+    return f"{100 * stats['terminal_fraction']:.2f} %"
+
+
 def read_report(path: Path) -> dict[str, Any]:
+    writer = {
+        "report.json": "python bench/evidence.py report",
+        "quality.json": "python bench/evidence.py sweep <task> [--learner L] --report-only",
+    }.get(path.name, "hipode verify")
     if not path.is_file():
-        raise TableError(f"{path} is missing; run `python bench/evidence.py report` first")
+        raise TableError(f"{path} is missing; `{writer}` writes it")
     try:
         return json.loads(path.read_text())
     except ValueError as error:
-        raise TableError(
-            f"{path}: expected a report.json, found unreadable JSON ({error})"
-        ) from None
+        raise TableError(f"{path}: expected JSON from `{writer}`, found ({error})") from None
 
 
 KINDS: dict[str, Callable[..., list[str]]] = {
@@ -235,11 +306,13 @@ def table_rows(
                 raise TableError(f"learner: expected one of {sorted(steps)}")
             pooled = reports / REPORT_FILES["pooled"]
             rows = run_rows(runs, pooled, read, params, steps[params["learner"]])
+        elif kind == "authenticity":
+            rows = authenticity_rows(runs, read, params)
         else:
             rows = KINDS[kind](read(where), name, params)
     except (KeyError, TypeError, IndexError, ZeroDivisionError) as error:
         raise TableError(
-            f"{where if kind != 'runs' else runs}: unexpected content ({error!r})"
+            f"{runs if kind in ('runs', 'authenticity') else where}: unexpected content ({error!r})"
         ) from None
     if not rows:
         raise TableError(f"no rows for {kind} {params}")

@@ -45,7 +45,14 @@ MEASURE_TEXT = {
     "curve_mean": "mean over all evaluations",
 }
 DEFAULT_BY = ("task", "learner", "data")
-OUTPUTS = ("report.json", "report.md", "report.csv", "report.tex", "curves.png")
+OUTPUTS = (
+    "report.json",
+    "report.md",
+    "report.csv",
+    "report.tex",
+    "curves.png",
+    "differences.png",
+)
 
 
 @dataclass(frozen=True)
@@ -331,6 +338,7 @@ def aggregate_over_tasks(comparisons: list[dict[str, Any]], by: tuple[str, ...])
     for key, entries in merged.items():
         row: dict[str, Any] = {
             "arm": " ".join(f"{k}={_shown(v)}" for k, v in key),
+            "key": dict(key),
             "tasks": [entry["key"]["task"] for entry in entries],
             "measures": {},
         }
@@ -692,8 +700,97 @@ def plot_curves(report: dict[str, Any], path: Path) -> None:
     save_figure_atomic(figure, path)
 
 
+@dataclass(frozen=True)
+class DifferencePoint:
+    """One interval of the differences plot: an arm's paired difference on one task, or its
+    mean over tasks, for one measure."""
+
+    label: str
+    measure: str
+    mean: float
+    low: float
+    high: float
+    pairs: int
+    across_tasks: bool
+
+
+def difference_points(report: dict[str, Any]) -> list[DifferencePoint]:
+    """Every paired difference of the report: the per-task ones, then each arm's mean over
+    tasks where it spans several, labelled by their keys ('hopper-m-r · td3bc · hipode',
+    'mean of 3 tasks · td3bc · hipode')."""
+    entries = [
+        (e["key"], {n: m["paired_difference"] for n, m in e["measures"].items()}, False)
+        for e in report["comparisons"]
+    ]
+    entries += [
+        ({"task": f"mean of {len(e['tasks'])} tasks", **e["key"]}, e["measures"], True)
+        for e in report.get("across_tasks", [])
+        if len(e["tasks"]) > 1  # over one task it repeats that task's row
+    ]
+    points = []
+    for key, differences, across in entries:
+        label = " · ".join(_shown(v) for v in key.values())
+        for name in MEASURES:
+            d = differences.get(name)
+            if d:
+                low, high = d["ci"]
+                points.append(
+                    DifferencePoint(label, name, d["mean"], low, high, d["pairs"], across)
+                )
+    return points
+
+
+def plot_differences(report: dict[str, Any], path: Path) -> None:
+    """Paired difference (arm − baseline) with its 95 % CI, a row per arm and task and one per
+    arm over tasks, a panel per measure, a line at zero: the comparisons at a glance, as PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    points = difference_points(report)
+    labels = list(dict.fromkeys(p.label for p in points))
+    names = [n for n in MEASURES if any(p.measure == n for p in points)]
+    figure, axes = plt.subplots(
+        1,
+        len(names),
+        figsize=(4.2 * len(names) + 2.0, 0.9 + 0.32 * len(labels)),
+        dpi=120,
+        sharey=True,
+        squeeze=False,
+    )
+    for axis, name in zip(axes.flat, names, strict=True):
+        for point in (p for p in points if p.measure == name):
+            row = labels.index(point.label)
+            color = "C3" if point.across_tasks else "C0"
+            axis.errorbar(
+                point.mean,
+                row,
+                xerr=[[point.mean - point.low], [point.high - point.mean]],
+                fmt="D" if point.across_tasks else "o",
+                color=color,
+                capsize=2,
+                markersize=4,
+            )
+        axis.axvline(0.0, color="0.4", linewidth=0.8)
+        axis.set_title(report["definitions"][name], fontsize=9)
+        axis.set_xlabel("paired difference (normalized score)", fontsize=8)
+        axis.grid(axis="x", alpha=0.3)
+    pairs = {p.label: p.pairs for p in points}
+    axes[0][0].set_yticks(range(len(labels)), [f"{x} ({pairs[x]} pairs)" for x in labels])
+    axes[0][0].tick_params(axis="y", labelsize=7)
+    axes[0][0].invert_yaxis()
+    figure.suptitle(
+        f"arm − {report['compare']}: mean with 95% CI (dots: per task; diamonds: mean over tasks)",
+        fontsize=9,
+    )
+    figure.tight_layout()
+    save_figure_atomic(figure, path)
+
+
 def write_report(report: dict[str, Any], out: Path) -> dict[str, Path]:
-    """report.json/.md/.csv/.tex and curves.png under `out`, each written atomically."""
+    """report.json/.md/.csv/.tex, curves.png and, where there are comparisons,
+    differences.png under `out`, each written atomically."""
     out.mkdir(parents=True, exist_ok=True)
     paths = {name: out / name for name in OUTPUTS}
     write_text_atomic(paths["report.json"], json.dumps(report, indent=2) + "\n")
@@ -701,4 +798,9 @@ def write_report(report: dict[str, Any], out: Path) -> dict[str, Path]:
     write_text_atomic(paths["report.csv"], csv_text(report))
     write_text_atomic(paths["report.tex"], latex(report))
     plot_curves(report, paths["curves.png"])
+    if difference_points(report):
+        plot_differences(report, paths["differences.png"])
+    else:
+        # a replaced report without comparisons must not leave an earlier report's plot beside it
+        paths.pop("differences.png").unlink(missing_ok=True)
     return paths

@@ -70,6 +70,14 @@ def test_sweep_runs_both_arms_reports_and_resumes(tmp_path, dataset_root):
     assert stats["reward_mean"] == pytest.approx(float(lam1.transitions.rewards.mean()))
     same_states = real.rewards[lam1.diagnostics["source_index"]].mean()
     assert stats["source_reward_mean_same_states"] == pytest.approx(float(same_states))
+    # and the source itself beside them, for the authenticity tables
+    assert result["sources"]["hopper-m-r"] == {
+        "sha256": info.sha256,
+        "rows": len(real.rewards),
+        "reward_mean": pytest.approx(float(real.rewards.mean())),
+        "terminal_fraction": pytest.approx(float(real.terminals.mean())),
+    }
+    assert "| hopper-m-r | source |" in (tmp_path / "results" / "quality.md").read_text()
     union_config = json.loads((Path(runs["mixing-union"]["run_dir"]) / "config.json").read_text())
     assert union_config["mixing"] == "union" and union_config["eta"] == 0.5
     assert (

@@ -17,11 +17,13 @@ from hipode_pipeline.errors import DataFormatError, SettingError
 from hipode_pipeline.report import (
     build_report,
     curve_panels,
+    difference_points,
     find_runs,
     improvement,
     interval_estimates,
     plot_curves,
     update_count,
+    write_report,
 )
 from hipode_pipeline.report import markdown as report_markdown
 
@@ -224,6 +226,49 @@ def test_comparisons_are_aggregated_over_tasks(tmp_path):
     assert all(group["n_runs"] == 3 for _, group in panels["walker2d-m-r"])
     plot_curves(report, tmp_path / "curves.png")
     assert (tmp_path / "curves.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_differences_plot_shows_every_paired_difference_and_each_mean_over_tasks(tmp_path):
+    runs = tmp_path / "runs"
+    for task, gain in (("hopper-m-r", 5.0), ("walker2d-m-r", -15.0)):
+        for seed, final in enumerate([20.0, 30.0, 45.0]):
+            write_run(runs / task / f"s{seed}", data="source", seed=seed, scores=[final], task=task)
+            write_run(
+                runs / task / f"h{seed}",
+                data="merged",
+                seed=seed,
+                scores=[final + gain],
+                task=task,
+                method="hipode",
+            )
+    # rollouts on one task only: its mean over tasks would repeat that task's row
+    for seed, final in enumerate([20.0, 30.0, 45.0]):
+        write_run(
+            runs / "hopper-m-r" / f"r{seed}",
+            data="merged",
+            seed=seed,
+            scores=[final + 2.0],
+            method="model-rollouts",
+        )
+    report = build_report(find_runs([runs]), by=POOLED, compare=("augmentation", "none"), reps=500)
+    last = {p.label: p for p in difference_points(report) if p.measure == "last"}
+    assert list(last) == [
+        "hopper-m-r · td3bc · hipode",
+        "hopper-m-r · td3bc · model-rollouts",
+        "walker2d-m-r · td3bc · hipode",
+        "mean of 2 tasks · td3bc · hipode",
+    ]
+    assert last["walker2d-m-r · td3bc · hipode"].mean == pytest.approx(-15.0)
+    assert last["walker2d-m-r · td3bc · hipode"].pairs == 3
+    mean = last["mean of 2 tasks · td3bc · hipode"]
+    assert (mean.mean, mean.low, mean.high, mean.pairs) == pytest.approx((-5.0, -5.0, -5.0, 6))
+    assert mean.across_tasks and not last["hopper-m-r · td3bc · hipode"].across_tasks
+    out = tmp_path / "report"
+    paths = write_report(report, out)
+    assert paths["differences.png"].read_bytes()[:4] == b"\x89PNG"
+    # replaced by a report without comparisons: the earlier plot does not stay behind
+    write_report(build_report(find_runs([runs]), by=POOLED, reps=500), out)
+    assert not (out / "differences.png").exists() and (out / "curves.png").is_file()
 
 
 def test_curves_of_two_learners_get_panels_of_their_own(tmp_path):

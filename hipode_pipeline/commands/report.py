@@ -47,7 +47,7 @@ def report_command(
         Path,
         typer.Option(
             "--out",
-            help="Folder for report.json/.md/.csv/.tex and curves.png.",
+            help="Folder for report.json/.md/.csv/.tex, curves.png and differences.png.",
             callback=output_folder,
         ),
     ] = Path("report"),

@@ -128,7 +128,7 @@ def run_sweep(config: SweepConfig) -> QualityReport:
     steps, eval_every, eval_episodes, budget = resolve_budget(config)
     started, clock = utc_now(), time.perf_counter()
     previous = previous_synthetic(config)  # read before this sweep's report replaces it
-    specs, arms = run_specs(config, root, previous, display_path)
+    specs, arms, sources = run_specs(config, root, previous, display_path)
     keys = {(a["learner"], a["name"]): a["key"] for task_arms in arms.values() for a in task_arms}
 
     def as_row(record: dict) -> dict:
@@ -196,6 +196,7 @@ def run_sweep(config: SweepConfig) -> QualityReport:
             "load_during": load.stats(),
         },
         arms=arms,
+        sources=sources,
         runs=sorted(runs, key=lambda r: (r["task"], r["learner"], r["arm"], r["seed"])),
         summary=summarize(runs, arms),
         started=started,

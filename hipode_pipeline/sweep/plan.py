@@ -482,27 +482,41 @@ def synthetic_stats(artifact: Path, source: tuple[Transitions, SourceInfo]) -> d
     }
 
 
+def source_stats(source: tuple[Transitions, SourceInfo]) -> dict[str, Any]:
+    """The source beside its arms' synthetic rows: its checksum, size, mean reward and
+    terminal share."""
+    transitions, info = source
+    return {
+        "sha256": info.sha256,
+        "rows": len(transitions.rewards),
+        "reward_mean": float(transitions.rewards.mean()),
+        "terminal_fraction": float(transitions.terminals.mean()),
+    }
+
+
 def run_specs(
     config: SweepConfig,
     root: Path,
     previous: SyntheticRows,
     display: Callable[[Path], str | None] = str,
-) -> tuple[list[RunSpec], dict[str, list[dict]]]:
+) -> tuple[list[RunSpec], dict[str, list[dict]], dict[str, dict[str, Any]]]:
     """Every (task, learner, arm, seed) run, seeds interleaved so paired runs finish close
-    together, and each task's arms as the report describes them (`display` shows a path;
-    `previous`: the last report's synthetic-data rows, for artifacts this machine lacks)."""
+    together, each task's arms as the report describes them and each task's source
+    (`source_stats`); `display` shows a path, `previous` holds the last report's
+    synthetic-data rows, for artifacts this machine lacks."""
     if (config.source or config.artifact) and len(config.tasks) != 1:
         raise SettingError("--source/--artifact: expected exactly one task in --tasks")
     if config.artifact and len(config.learners) != 1:
         raise SettingError("--artifact: expected exactly one learner in --learners")
     steps, eval_every, eval_episodes, _ = resolve_budget(config)
     arms = arms_for(config)
-    specs, described = [], {}
+    specs, described, sources = [], {}, {}
     for task_name in config.tasks:
         task = get_task(task_name)
         source = ensure_source(
             task, config.source, root, config.show_progress, config.allow_off_band
         )
+        sources[task.name] = source_stats(source)
         described[task.name] = []
         paths = prepare_artifacts(task, arms, config, root, source[1])
         # arms that share an artifact (the table's setting) read it once
@@ -563,7 +577,7 @@ def run_specs(
                             allow_off_band=config.allow_off_band,
                         )
                     )
-    return specs, described
+    return specs, described, sources
 
 
 def check_seeds_per_process(value: int | None) -> None:

@@ -39,6 +39,7 @@ class QualityReport:
     budget: dict[str, Any]  # learners, steps, eval_every, eval_episodes, seeds
     machine: dict[str, Any]  # platform, cores, torch, device, engine, workers, load averages
     arms: dict[str, list[dict[str, Any]]]  # task -> arm descriptions (one per learner and arm)
+    sources: dict[str, dict[str, Any]]  # task -> the source: sha256, rows, reward, terminals
     runs: list[dict[str, Any]]  # one record per (task, learner, arm, seed)
     summary: dict[str, Any]  # task -> arm key -> mean ± std and paired differences
     started: str  # UTC time the sweep started
@@ -330,6 +331,11 @@ def markdown(report: QualityReport) -> str:
         "| " + " | ".join("---" for _ in SYNTHETIC_COLUMNS) + " |",
     ]
     for task, arms in report.arms.items():
+        if task in report.sources:
+            source = report.sources[task]
+            cells = [task, "source", f"{source['rows']:,}", f"{source['reward_mean']:.3f}"]
+            cells += ["", "", f"{100 * source['terminal_fraction']:.2f}%", ""]
+            lines.append("| " + " | ".join(cells) + " |")
         for arm in arms:
             stats = arm.get("synthetic")
             if stats is None:
