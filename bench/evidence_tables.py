@@ -15,8 +15,9 @@ runs finished at the campaign's budget, and refuses when they are not the runs t
 holds (a run finished after the report was written); `authenticity` puts the source beside
 each artifact of a sweep folder: the sweep's quality.json (rewards, real rewards at the same
 states, terminal share) and each arm's `hipode verify` report under report/<learner>/verify/
-(next-state error against the simulator, share within tolerance, novelty). `python bench/evidence.py tables`
-rewrites the rows in place; with `--check` it changes nothing and fails on any difference.
+(next-state error against the simulator, share within tolerance, novelty).
+`python bench/evidence.py tables` rewrites the rows in place; with `--check` it changes nothing
+and fails on any difference.
 """
 
 from __future__ import annotations
