@@ -132,7 +132,7 @@ def across_rows(report: dict[str, Any], report_name: str, params: dict[str, str]
     """One row per arm: the mean over tasks of each task's mean paired difference."""
     rows = []
     for entry in report["across_tasks"]:
-        fields = dict(part.split("=", 1) for part in entry["arm"].split())
+        fields = entry.get("key") or dict(part.split("=", 1) for part in entry["arm"].split())
         if fields.get("learner") != params["learner"]:
             continue
         measures = entry["measures"]
@@ -162,7 +162,7 @@ def run_rows(
     from hipode_pipeline.sweep.worker import recorded_seeds, run_folder
 
     folder, learner = runs / params["folder"], params["learner"]
-    task = params["folder"].rsplit("-", 1)[0]  # <task>-<sha8>
+    task, _ = folder_parts(params["folder"])
     if not (folder / task).is_dir():
         raise TableError(f"folder={params['folder']}: expected {folder / task} to exist")
     # the run folders the pooled report holds, as it names them (relative to the checkout)
@@ -196,54 +196,72 @@ def run_rows(
     return rows
 
 
-def stage_one_seed(arm: dict[str, Any], command: str) -> int:
-    """An arm's stage-one seed: its own, else the sweep's --artifact-seed (default 0)."""
-    seed = (arm.get("augment") or {}).get("seed")
-    if seed is None:
-        given = re.search(r"--artifact-seed (\d+)", command)
-        seed = int(given[1]) if given else 0
-    return seed
+FOLDER = re.compile(r"(?P<task>.+)-(?P<sha8>[0-9a-f]{8})")
 
 
-def verify_report(folder: Path, arm: str) -> dict[str, Any]:
-    """The one `hipode verify` report of an arm's artifact in a sweep's report folder."""
-    found = sorted((folder / arm).glob("*.verify.json"))
+def folder_parts(name: str) -> tuple[str, str]:
+    """A sweep folder's task and the first 8 hex of its source's sha256: <task>-<sha8>."""
+    match = FOLDER.fullmatch(name)
+    if match is None:
+        raise TableError(f"folder={name}: expected <task>-<first 8 hex of the source's sha256>")
+    return match["task"], match["sha8"]
+
+
+def verify_report(folder: Path, arm: dict[str, Any], source: dict[str, Any]) -> dict[str, Any]:
+    """The one `hipode verify` report in a sweep's verify/<arm>/, checked to be of the arm's
+    artifact built from the folder's source."""
+    found = sorted((folder / arm["name"]).glob("*.verify.json"))
     if len(found) != 1:
         raise TableError(
-            f"{folder / arm}: expected one *.verify.json, found {len(found)}; run `hipode verify "
-            f"<the arm's artifact> --no-baseline --sample 2000 --out-dir {folder / arm}`"
+            f"{folder / arm['name']}: expected one *.verify.json, found {len(found)}; run "
+            f"`hipode verify {arm['artifact']} --no-baseline --sample 2000 "
+            f"--out-dir {folder / arm['name']}`"
         )
-    return read_report(found[0])
+    report = read_report(found[0])
+    for field, expected in (("artifact", arm["artifact"]), ("source_sha256", source["sha256"])):
+        if report.get(field) != expected:
+            raise TableError(
+                f"{found[0]}: field {field}: expected {expected!r} (the arm's), found "
+                f"{report.get(field)!r}; verify the arm's own artifact again"
+            )
+    return report
 
 
 def authenticity_rows(runs: Path, read: ReportReader, params: dict[str, str]) -> list[str]:
     """The source, then one row per artifact of the folder's arms: its reward beside the real
     reward at the same states, terminal share, next-state error against the simulator (median on
     rows with exact ground truth, source stds), share within tolerance and novelty (median)."""
+    task, sha8 = folder_parts(params["folder"])
     results = runs / params["folder"] / "report" / params["learner"]
     quality = read(results / "quality.json")
-    task = params["folder"].rsplit("-", 1)[0]  # <task>-<sha8>
+    rewrite = f"rewrite it on a machine that holds source {sha8} with `{quality['command']}" + (
+        "`" if "--report-only" in quality["command"] else " --report-only`"
+    )
     source = quality.get("sources", {}).get(task)
     if source is None:
+        raise TableError(f"{results / 'quality.json'}: no field sources.{task}; {rewrite}")
+    if not source["sha256"].startswith(sha8):
         raise TableError(
-            f"{results / 'quality.json'}: expected the source of {task} under 'sources'; "
-            f"rewrite it with `python bench/evidence.py sweep {task} --learner "
-            f"{params['learner']} --report-only` (it needs the source)"
+            f"{results / 'quality.json'}: field sources.{task}.sha256: expected {sha8}…, "
+            f"found {source['sha256'][:8]}…"
         )
-    if not source["sha256"].startswith(params["folder"].rsplit("-", 1)[1]):
-        raise TableError(f"{results / 'quality.json'}: its source is not {params['folder']}'s")
     rows = [row(["source", "", f"{source['reward_mean']:.3f}", terminal_text(source)] + [""] * 3)]
     arms = [a for a in quality["arms"][task] if a["learner"] == params["learner"]]
     for arm in sorted(arms, key=lambda a: rank(ARM_ORDER, a["name"])):
-        synthetic = arm["synthetic"]
-        if synthetic is None:
+        if arm["data"] == "source":
             continue
-        checked = verify_report(results / "verify", arm["name"])["hipode"]
+        synthetic, seed = arm["synthetic"], arm.get("stage_one_seed")
+        if synthetic is None or seed is None:
+            missing = "synthetic" if synthetic is None else "stage_one_seed"
+            raise TableError(
+                f"{results / 'quality.json'}: arm {arm['name']} has no {missing}; {rewrite}"
+            )
+        checked = verify_report(results / "verify", arm, source)["hipode"]
         rows.append(
             row(
                 [
                     (arm.get("augment") or {}).get("method", "hipode"),
-                    str(stage_one_seed(arm, quality["command"])),
+                    str(seed),
                     f"{synthetic['reward_mean']:.3f} "
                     f"({synthetic['source_reward_mean_same_states']:.3f})",
                     terminal_text(synthetic),
@@ -270,7 +288,7 @@ def read_report(path: Path) -> dict[str, Any]:
     try:
         return json.loads(path.read_text())
     except ValueError as error:
-        raise TableError(f"{path}: expected JSON from `{writer}`, found ({error})") from None
+        raise TableError(f"{path}: expected JSON from `{writer}`, : {error}") from None
 
 
 KINDS: dict[str, Callable[..., list[str]]] = {
@@ -312,9 +330,8 @@ def table_rows(
         else:
             rows = KINDS[kind](read(where), name, params)
     except (KeyError, TypeError, IndexError, ZeroDivisionError) as error:
-        raise TableError(
-            f"{runs if kind in ('runs', 'authenticity') else where}: unexpected content ({error!r})"
-        ) from None
+        read_from = {"runs": runs, "authenticity": runs / params.get("folder", "")}
+        raise TableError(f"{read_from.get(kind, where)}: unexpected content ({error!r})") from None
     if not rows:
         raise TableError(f"no rows for {kind} {params}")
     return rows

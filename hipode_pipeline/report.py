@@ -714,22 +714,36 @@ class DifferencePoint:
     across_tasks: bool
 
 
+def across_key(entry: dict[str, Any]) -> dict[str, str]:
+    """An across-task row's keys; reports written before rows carried them spell them in
+    'arm' ('learner=td3bc augmentation=hipode')."""
+    if "key" in entry:
+        return entry["key"]
+    return dict(part.split("=", 1) for part in entry["arm"].split())
+
+
+def label_text(value: Any) -> str:
+    """A key's value in a plot label: a sha256 by its first 8 hex, like the docs' tables."""
+    text = _shown(value)
+    return text[:8] if len(text) == 64 and all(c in "0123456789abcdef" for c in text) else text
+
+
 def difference_points(report: dict[str, Any]) -> list[DifferencePoint]:
     """Every paired difference of the report: the per-task ones, then each arm's mean over
-    tasks where it spans several, labelled by their keys ('hopper-m-r · td3bc · hipode',
-    'mean of 3 tasks · td3bc · hipode')."""
+    tasks where it spans several, labelled by their keys in the report's order
+    ('hopper-m-r · td3bc · hipode', 'mean of 3 tasks · td3bc · hipode')."""
     entries = [
         (e["key"], {n: m["paired_difference"] for n, m in e["measures"].items()}, False)
         for e in report["comparisons"]
     ]
-    entries += [
-        ({"task": f"mean of {len(e['tasks'])} tasks", **e["key"]}, e["measures"], True)
-        for e in report.get("across_tasks", [])
-        if len(e["tasks"]) > 1  # over one task it repeats that task's row
-    ]
+    for entry in report.get("across_tasks", []):
+        if len(entry["tasks"]) < 2:
+            continue  # over one task it repeats that task's row
+        key = {"task": f"mean of {len(entry['tasks'])} tasks", **across_key(entry)}
+        entries.append(({k: key[k] for k in report["by"] if k in key}, entry["measures"], True))
     points = []
     for key, differences, across in entries:
-        label = " · ".join(_shown(v) for v in key.values())
+        label = " · ".join(label_text(v) for v in key.values())
         for name in MEASURES:
             d = differences.get(name)
             if d:
@@ -742,7 +756,8 @@ def difference_points(report: dict[str, Any]) -> list[DifferencePoint]:
 
 def plot_differences(report: dict[str, Any], path: Path) -> None:
     """Paired difference (arm − baseline) with its 95 % CI, a row per arm and task and one per
-    arm over tasks, a panel per measure, a line at zero: the comparisons at a glance, as PNG."""
+    arm over tasks, a panel per measure, a line at zero: the comparisons at a glance, as PNG.
+    A difference of one pair has no interval: its marker is hollow."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -761,14 +776,15 @@ def plot_differences(report: dict[str, Any], path: Path) -> None:
     )
     for axis, name in zip(axes.flat, names, strict=True):
         for point in (p for p in points if p.measure == name):
-            row = labels.index(point.label)
             color = "C3" if point.across_tasks else "C0"
             axis.errorbar(
                 point.mean,
-                row,
-                xerr=[[point.mean - point.low], [point.high - point.mean]],
+                labels.index(point.label),
+                # clamped: a rounding error must not make a whisker negative
+                xerr=[[max(0.0, point.mean - point.low)], [max(0.0, point.high - point.mean)]],
                 fmt="D" if point.across_tasks else "o",
                 color=color,
+                markerfacecolor=color if point.pairs > 1 else "none",
                 capsize=2,
                 markersize=4,
             )
@@ -781,7 +797,8 @@ def plot_differences(report: dict[str, Any], path: Path) -> None:
     axes[0][0].tick_params(axis="y", labelsize=7)
     axes[0][0].invert_yaxis()
     figure.suptitle(
-        f"arm − {report['compare']}: mean with 95% CI (dots: per task; diamonds: mean over tasks)",
+        f"arm − {report['compare']}: mean with 95% CI (dots: per task; diamonds: mean over "
+        "tasks; hollow: one pair, no interval)",
         fontsize=9,
     )
     figure.tight_layout()

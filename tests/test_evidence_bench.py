@@ -148,16 +148,21 @@ def test_run_rows_list_the_reported_finished_runs_by_seed_number(tmp_path, monke
         regenerate(table, Path("report"), Path("runs"))
 
 
-def write_verify(folder, arm, error, within, novelty):
-    folder = folder / arm
-    folder.mkdir(parents=True)
+SHA = "0123abcd" + "0" * 56
+
+
+def write_verify(folder, arm, error, within, novelty, artifact=None, source=SHA):
     checked = {
         "next_state_error_median_exact_rows": error,
         "next_state_error_median": error + 1.0,  # rows without exact ground truth: not shown
         "within_tolerance": within,
         "novelty_median": novelty,
     }
-    (folder / "artifact.hdf5.verify.json").write_text(json.dumps({"hipode": checked}))
+    report = {"artifact": artifact or f"runs/{arm}/artifact.hdf5", "source_sha256": source}
+    (folder / arm).mkdir(parents=True, exist_ok=True)
+    (folder / arm / "artifact.hdf5.verify.json").write_text(
+        json.dumps(report | {"hipode": checked})
+    )
 
 
 def test_authenticity_rows_put_the_source_beside_each_artifact_and_its_check(tmp_path, monkeypatch):
@@ -165,34 +170,42 @@ def test_authenticity_rows_put_the_source_beside_each_artifact_and_its_check(tmp
     results = Path("runs") / "hopper-m-r-0123abcd" / "report" / "td3bc"
     results.mkdir(parents=True)
 
-    def synthetic(reward, same, terminal):
-        return {
+    def arm(name, seed, reward, same, terminal, augment=None):
+        synthetic = {
             "reward_mean": reward,
             "source_reward_mean_same_states": same,
             "terminal_fraction": terminal,
         }
+        return {
+            "name": name,
+            "learner": "td3bc",
+            "data": "merged",
+            "augment": augment,
+            "artifact": f"runs/{name}/artifact.hdf5",
+            "stage_one_seed": seed,
+            "synthetic": synthetic,
+        }
 
+    source_only = {"name": "eta0", "data": "source", "artifact": None, "synthetic": None}
     arms = [
-        {"name": "model-rollouts-seed1", "augment": {"method": "model-rollouts", "seed": 1}},
-        {"name": "eta0", "augment": None, "synthetic": None},
-        {"name": "hipode", "augment": None, "synthetic": synthetic(3.2, 3.1, 0.0006)},
-        {"name": "artifact-seed1", "augment": {"seed": 1}, "synthetic": synthetic(3.0, 3.0, 0)},
-        {"name": "eta0", "augment": None, "synthetic": None, "learner": "iql"},
+        arm("model-rollouts-seed1", 1, 2.9, 2.8, 0.0061, {"method": "model-rollouts", "seed": 1}),
+        {**source_only, "learner": "td3bc", "stage_one_seed": None},
+        arm("hipode", 2, 3.2, 3.1, 0.0006),
+        arm("artifact-seed1", 1, 3.0, 3.0, 0, {"seed": 1}),
+        {**source_only, "learner": "iql"},
     ]
-    arms[0]["synthetic"] = synthetic(2.9, 2.8, 0.0061)
     quality = {
         "command": "hipode sweep --tasks hopper-m-r --artifact-seed 2 --artifact-seeds 1",
-        "arms": {"hopper-m-r": [{"learner": "td3bc", **arm} for arm in arms]},
+        "arms": {"hopper-m-r": arms},
         "sources": {
-            "hopper-m-r": {
-                "sha256": "0123abcd" + "0" * 56,
-                "reward_mean": 2.881234,
-                "terminal_fraction": 0.0061,
-                "rows": 10,
-            }
+            "hopper-m-r": {"sha256": SHA, "reward_mean": 2.881234, "terminal_fraction": 0.0061}
         },
     }
-    (results / "quality.json").write_text(json.dumps(quality))
+
+    def write_quality():
+        (results / "quality.json").write_text(json.dumps(quality))
+
+    write_quality()
     write_verify(results / "verify", "hipode", 0.00934, 0.9995, 0.2444)
     write_verify(results / "verify", "artifact-seed1", 0.0100, 1.0, 0.241)
     write_verify(results / "verify", "model-rollouts-seed1", 0.0069, 0.982, 0.262)
@@ -201,28 +214,34 @@ def test_authenticity_rows_put_the_source_beside_each_artifact_and_its_check(tmp
     text, _ = regenerate(table, Path("report"), Path("runs"))
     assert text.split("\n")[3:] == [
         "| source |  | 2.881 | 0.61 % |  |  |  |",
-        # the sweep's own stage-one seed (--artifact-seed 2) where an arm names none
         "| hipode | 2 | 3.200 (3.100) | 0.06 % | 0.0093 | 99.95 % | 0.244 |",
         "| hipode | 1 | 3.000 (3.000) | 0.00 % | 0.0100 | 100.00 % | 0.241 |",
         "| model-rollouts | 1 | 2.900 (2.800) | 0.61 % | 0.0069 | 98.20 % | 0.262 |",
     ]
-    # an artifact without its verify report, a report from before sources were recorded, and
-    # another source's report are refused, each naming what to run
+
+    def refused(match):
+        with pytest.raises(evidence_tables.TableError, match=match):
+            regenerate(table, Path("report"), Path("runs"))
+
+    # a verify report of another artifact or source is never quoted as the arm's
+    write_verify(results / "verify", "hipode", 0.01, 1.0, 0.2, artifact="datasets/other.hdf5")
+    refused("field artifact: expected 'runs/hipode/artifact.hdf5'")
+    write_verify(results / "verify", "hipode", 0.01, 1.0, 0.2, source="ff" * 32)
+    refused("field source_sha256")
     (results / "verify" / "hipode" / "artifact.hdf5.verify.json").unlink()
-    with pytest.raises(evidence_tables.TableError, match="expected one .*hipode verify"):
-        regenerate(table, Path("report"), Path("runs"))
-    write_verify(results / "verify", "spare", 0.01, 1.0, 0.2)
-    (results / "verify" / "spare" / "artifact.hdf5.verify.json").rename(
-        results / "verify" / "hipode" / "artifact.hdf5.verify.json"
-    )
+    refused("expected one .*hipode verify runs/hipode/artifact.hdf5")
+    write_verify(results / "verify", "hipode", 0.01, 1.0, 0.2)
+    # an artifact arm whose synthetic row is missing is refused, not left out
+    arms[2]["synthetic"] = None
+    write_quality()
+    refused("arm hipode has no synthetic; .*--report-only`")
+    # and so are a report of another source and one from before sources were recorded
     quality["sources"]["hopper-m-r"]["sha256"] = "ffff" + "0" * 60
-    (results / "quality.json").write_text(json.dumps(quality))
-    with pytest.raises(evidence_tables.TableError, match="not hopper-m-r-0123abcd's"):
-        regenerate(table, Path("report"), Path("runs"))
+    write_quality()
+    refused("sha256: expected 0123abcd…, found ffff0000…")
     del quality["sources"]
-    (results / "quality.json").write_text(json.dumps(quality))
-    with pytest.raises(evidence_tables.TableError, match="--report-only"):
-        regenerate(table, Path("report"), Path("runs"))
+    write_quality()
+    refused("no field sources.hopper-m-r; rewrite it on a machine that holds source 0123abcd")
 
 
 @pytest.mark.parametrize(
@@ -234,6 +253,7 @@ def test_authenticity_rows_put_the_source_beside_each_artifact_and_its_check(tmp
         ("<!-- evidence-rows: plots report=pooled learner=td3bc -->", "expected a kind in"),
         ("<!-- evidence-rows: groups report=pooled learner=sac -->", "no rows for"),
         ("<!-- evidence-rows: runs folder=ant-m-r-00000000 learner=iql -->", "to exist"),
+        ("<!-- evidence-rows: runs folder=hopper-m-r learner=iql -->", "<task>-<first 8"),
         ("<!-- evidence-rows: runs folder=hopper-m-r-f1a408d8 learner=iql -->", "no rows for"),
         ("<!-- evidence-rows: groups report = pooled -->", "malformed marker"),
     ],

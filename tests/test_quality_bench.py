@@ -70,6 +70,8 @@ def test_sweep_runs_both_arms_reports_and_resumes(tmp_path, dataset_root):
     assert stats["reward_mean"] == pytest.approx(float(lam1.transitions.rewards.mean()))
     same_states = real.rewards[lam1.diagnostics["source_index"]].mean()
     assert stats["source_reward_mean_same_states"] == pytest.approx(float(same_states))
+    assert described["eta0"]["stage_one_seed"] is None and described["lam1"]["stage_one_seed"] == 0
+    assert described["artifact-seed3"]["stage_one_seed"] == 3
     # and the source itself beside them, for the authenticity tables
     assert result["sources"]["hopper-m-r"] == {
         "sha256": info.sha256,

@@ -237,19 +237,15 @@ def test_differences_plot_shows_every_paired_difference_and_each_mean_over_tasks
                 runs / task / f"h{seed}",
                 data="merged",
                 seed=seed,
-                scores=[final + gain],
+                scores=[final + gain + 2.0 * seed],  # per-seed noise: a real interval
                 task=task,
                 method="hipode",
             )
-    # rollouts on one task only: its mean over tasks would repeat that task's row
-    for seed, final in enumerate([20.0, 30.0, 45.0]):
-        write_run(
-            runs / "hopper-m-r" / f"r{seed}",
-            data="merged",
-            seed=seed,
-            scores=[final + 2.0],
-            method="model-rollouts",
-        )
+    # rollouts on one task and one seed: no interval, and no mean over tasks (it would repeat
+    # that task's row)
+    write_run(
+        runs / "hopper-m-r" / "r0", data="merged", seed=0, scores=[22.0], method="model-rollouts"
+    )
     report = build_report(find_runs([runs]), by=POOLED, compare=("augmentation", "none"), reps=500)
     last = {p.label: p for p in difference_points(report) if p.measure == "last"}
     assert list(last) == [
@@ -258,11 +254,29 @@ def test_differences_plot_shows_every_paired_difference_and_each_mean_over_tasks
         "walker2d-m-r · td3bc · hipode",
         "mean of 2 tasks · td3bc · hipode",
     ]
-    assert last["walker2d-m-r · td3bc · hipode"].mean == pytest.approx(-15.0)
-    assert last["walker2d-m-r · td3bc · hipode"].pairs == 3
+    entries = {
+        (e["key"]["task"], e["key"]["augmentation"]): e["measures"]["last"]["paired_difference"]
+        for e in report["comparisons"]
+    }
+    walker = last["walker2d-m-r · td3bc · hipode"]
+    expected = entries["walker2d-m-r", "hipode"]
+    assert (walker.mean, [walker.low, walker.high], walker.pairs) == (
+        expected["mean"],
+        expected["ci"],
+        3,
+    )
+    assert walker.low < walker.mean < walker.high and walker.mean == pytest.approx(-15.0 + 2.0)
+    assert last["hopper-m-r · td3bc · model-rollouts"].pairs == 1
     mean = last["mean of 2 tasks · td3bc · hipode"]
-    assert (mean.mean, mean.low, mean.high, mean.pairs) == pytest.approx((-5.0, -5.0, -5.0, 6))
-    assert mean.across_tasks and not last["hopper-m-r · td3bc · hipode"].across_tasks
+    (across,) = report["across_tasks"][:1]
+    assert [mean.low, mean.high] == across["measures"]["last"]["ci"] and mean.pairs == 6
+    assert mean.mean == pytest.approx((5.0 - 15.0) / 2 + 2.0) and mean.across_tasks
+    assert not walker.across_tasks
+    # a report.json written before across-task rows carried their keys gives the same points
+    old = json.loads(json.dumps(report))
+    for entry in old["across_tasks"]:
+        del entry["key"]
+    assert difference_points(old) == difference_points(report)
     out = tmp_path / "report"
     paths = write_report(report, out)
     assert paths["differences.png"].read_bytes()[:4] == b"\x89PNG"

@@ -545,6 +545,7 @@ def run_specs(
                         "learner": learner,
                         "key": arm_key(learner, arm.name, config.learners),
                         "artifact": None if artifact is None else display(artifact),
+                        "stage_one_seed": None if artifact is None else stage_one_seed(arm, config),
                         "synthetic": stats.get(artifact)
                         or reported.get(checksums.get((learner, arm.name))),
                     }
