@@ -196,19 +196,25 @@ def test_pooled_stage_one_seeds_pair_with_the_baseline_and_resample_both_seeds(p
     assert "_means" not in hipode  # the bootstrap samples stay out of report.json
 
 
-def test_comparisons_are_aggregated_over_tasks(tmp_path):
-    runs = tmp_path / "runs"
-    for task, gain in (("hopper-m-r", 5.0), ("walker2d-m-r", 15.0)):
+def write_two_tasks(runs: Path, gains: dict[str, float], noise: float) -> None:
+    """Three seeds of η = 0 and HIPODE per task; HIPODE's final score is η = 0's plus the
+    task's gain plus noise × seed."""
+    for task, gain in gains.items():
         for seed, final in enumerate([20.0, 30.0, 45.0]):
             write_run(runs / task / f"s{seed}", data="source", seed=seed, scores=[final], task=task)
             write_run(
                 runs / task / f"h{seed}",
                 data="merged",
                 seed=seed,
-                scores=[final + gain + seed],  # per-seed noise: 0, 1, 2
+                scores=[final + gain + noise * seed],
                 task=task,
                 method="hipode",
             )
+
+
+def test_comparisons_are_aggregated_over_tasks(tmp_path):
+    runs = tmp_path / "runs"
+    write_two_tasks(runs, {"hopper-m-r": 5.0, "walker2d-m-r": 15.0}, noise=1.0)  # noise 0, 1, 2
     report = build_report(find_runs([runs]), by=POOLED, compare=("augmentation", "none"), reps=4000)
     (entry,) = report["across_tasks"]
     assert entry["arm"] == "learner=td3bc augmentation=hipode"
@@ -230,17 +236,8 @@ def test_comparisons_are_aggregated_over_tasks(tmp_path):
 
 def test_differences_plot_shows_every_paired_difference_and_each_mean_over_tasks(tmp_path):
     runs = tmp_path / "runs"
-    for task, gain in (("hopper-m-r", 5.0), ("walker2d-m-r", -15.0)):
-        for seed, final in enumerate([20.0, 30.0, 45.0]):
-            write_run(runs / task / f"s{seed}", data="source", seed=seed, scores=[final], task=task)
-            write_run(
-                runs / task / f"h{seed}",
-                data="merged",
-                seed=seed,
-                scores=[final + gain + 2.0 * seed],  # per-seed noise: a real interval
-                task=task,
-                method="hipode",
-            )
+    # per-seed noise: a real interval
+    write_two_tasks(runs, {"hopper-m-r": 5.0, "walker2d-m-r": -15.0}, noise=2.0)
     # rollouts on one task and one seed: no interval, and no mean over tasks (it would repeat
     # that task's row)
     write_run(
