@@ -334,7 +334,7 @@ def markdown(report: QualityReport) -> str:
         if task in report.sources:
             source = report.sources[task]
             cells = [task, "source", f"{source['rows']:,}", f"{source['reward_mean']:.3f}"]
-            cells += ["", "", f"{100 * source['terminal_fraction']:.2f}%", ""]
+            cells += ["", "", f"{100 * source['terminal_fraction']:.2f} %", ""]
             lines.append("| " + " | ".join(cells) + " |")
         for arm in arms:
             stats = arm.get("synthetic")
@@ -348,7 +348,7 @@ def markdown(report: QualityReport) -> str:
                 f"{stats['reward_mean']:.3f}",
                 f"{stats['source_reward_mean_same_states']:.3f}",
                 f"{stats['dynamics_error_median']:.4f}",
-                f"{100 * stats['terminal_fraction']:.2f}%",
+                f"{100 * stats['terminal_fraction']:.2f} %",
                 "n/a" if novelty is None else f"{novelty:.3f}",
             ]
             lines.append("| " + " | ".join(cells) + " |")
