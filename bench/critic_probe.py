@@ -21,7 +21,9 @@ critics learn scaled rewards where its config normalizes them: their values are 
 scale, so every Q here is in the data's reward units. IQL's Q is an in-sample (expectile) value,
 not its policy's: its Q − return also holds the gap between the two. Needs the
 runs' checkpoint.pt files (not committed: run it in the session that trained them) and the
-runs' own source under the dataset root (its sha256 is checked against the runs' records).
+runs' own source under the dataset root (its sha256 is checked against the runs' records). A
+finished run whose checkpoint is gone keeps its row from the previous report (same --states and
+--horizon, same number of updates), with the date it was probed.
 """
 
 from __future__ import annotations
@@ -207,6 +209,60 @@ def probe(
     }
 
 
+def read_record(path: Path, field: str, expected: str) -> dict:
+    """A JSON object from `path` whose `field` holds what `expected` says; anything else is
+    refused by name (a file is data: parsed, never run)."""
+    from hipode_pipeline.errors import DataFormatError
+
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, ValueError) as error:
+        raise DataFormatError(path, field, expected, f"unreadable JSON ({error})") from None
+    if not isinstance(record, dict) or field not in record:
+        raise DataFormatError(path, field, expected, "no such field")
+    return record
+
+
+def previous_report(path: Path) -> dict:
+    """The critic_probe.json that this run replaces, checked to hold probe rows."""
+    from hipode_pipeline.errors import DataFormatError
+
+    expected = "a list of probe rows written by bench/critic_probe.py"
+    record = read_record(path, "runs", expected)
+    rows = record["runs"]
+    if not isinstance(rows, list) or not all(isinstance(r, dict) and "run" in r for r in rows):
+        raise DataFormatError(path, "runs", expected)
+    return record
+
+
+def carried_rows(previous: dict, probed: list[dict], states: int, horizon: int) -> list[dict]:
+    """Rows of the previous report (`previous`, its parsed JSON) for runs that were not probed
+    now because their checkpoint is gone: a run still finished (scores.json), with as many
+    updates as when it was probed, under the same check settings. Each keeps its probe date."""
+    fresh = {row["run"] for row in probed}
+    kept = []
+    for row in previous["runs"]:
+        folder = REPO / str(row.get("run"))
+        if row.get("run") in fresh or not (folder / "scores.json").is_file():
+            continue
+        config = read_record(folder / "config.json", "seed", "a run record of `hipode train`")
+        if config.get("steps", row.get("step")) != row.get("step"):
+            continue  # trained further since: its old row is stale
+        checked = "q_policy" in row
+        if checked != bool(states) or (checked and row.get("horizon") != horizon):
+            continue
+        kept.append({**row, "probed_utc": row.get("probed_utc", previous.get("date_utc"))})
+    return kept
+
+
+def probe_dates(rows: list[dict]) -> str:
+    """When the rows were probed, with how many each time."""
+    counts: dict[str, int] = {}
+    for row in rows:
+        counts[row["probed_utc"]] = counts.get(row["probed_utc"], 0) + 1
+    return "; ".join(f"{date} UTC: {n} run{'s' * (n > 1)}" for date, n in sorted(counts.items()))
+
+
 def table(rows: list[dict]) -> str:
     """The falls table (Q alone for runs whose source has no falls), and the policy-value table
     where the rows have it."""
@@ -285,14 +341,19 @@ def main(argv: list[str] | None = None) -> None:
     ids = {config["source_id"] for config in configs.values()}
     sources = {i: load_source(i, datasets_root()) for i in ids}
     start = time.time()
+    now = time.strftime("%Y-%m-%d %H:%M", time.gmtime())
     with torch_threads(1):
         rows = [probe(f, configs[f], sources, args.states, args.horizon) for f in folders]
-    rows.sort(key=lambda r: (r["arm"], r["seed"]))
+    rows = [{**row, "probed_utc": now} for row in rows]
     out = args.folder / "report" / args.learner
+    previous = out / "critic_probe.json"
+    if previous.is_file():
+        rows += carried_rows(previous_report(previous), rows, args.states, args.horizon)
+    rows.sort(key=lambda r: (r["arm"], r["seed"]))
     out.mkdir(parents=True, exist_ok=True)
     record = {
         "command": "python bench/critic_probe.py " + " ".join(argv or sys.argv[1:]),
-        "date_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime()),
+        "date_utc": now,
         "seconds": round(time.time() - start, 1),
         "versions": package_versions(),
         "runs": rows,
@@ -301,8 +362,9 @@ def main(argv: list[str] | None = None) -> None:
     write_text_atomic(
         out / "critic_probe.md",
         f"# {LEARNERS[args.learner]} critics at the source's falls\n\n`{record['command']}` "
-        f"({record['date_utc']} UTC). Q: the smaller twin critic at the source's own (s, a); "
-        "a fall (terminal row) is worth its reward exactly.\n\n" + table(rows),
+        f"({record['date_utc']} UTC; rows probed {probe_dates(rows)}). Q: the smaller twin "
+        "critic at the source's own (s, a); a fall (terminal row) is worth its reward "
+        "exactly.\n\n" + table(rows),
     )
     print(table(rows))
 

@@ -203,3 +203,46 @@ def test_the_critic_is_checked_against_its_policys_return_in_the_simulator(tmp_p
     assert row["q_policy_overestimate"] == pytest.approx(float((q - returns).mean()), rel=1e-5)
     assert row["falls_within_horizon"] == int((steps < 25).sum())
     assert f"| eta0 | 3 | {row['q_policy']:.1f} |" in critic_probe.table([row])
+
+
+def test_rows_of_runs_whose_checkpoints_are_gone_are_carried_with_their_probe_date(tmp_path):
+    data = source()
+    sha = "ab" * 32
+    root = tmp_path / "hopper-m-r"
+    configs = {
+        arm: finished_run(root / arm / "td3bc-seed3", data, sha, 1.0, 1.0)
+        for arm in ("eta0", "hipode", "lam1", "longer", "checked")
+    }
+    sources = {"local/hopper/medium-replay-v0": (data, SimpleNamespace(sha256=sha))}
+    now = critic_probe.probe(root / "hipode" / "td3bc-seed3", configs["hipode"], sources, states=0)
+    old = {
+        arm: {**now, "run": str(root / arm / "td3bc-seed3"), "arm": arm}
+        for arm in ("eta0", "hipode", "lam1", "longer", "checked", "deleted")
+    }
+    old["hipode"].update(run=now["run"], q_mean=-1.0)  # probed again now: the fresh row wins
+    old["checked"].update(q_policy=1.0, states=6, horizon=25)  # another check setting
+    for arm in ("eta0", "lam1", "longer", "checked"):
+        (root / arm / "td3bc-seed3" / "checkpoint.pt").unlink()  # gone with their machine
+    (root / "lam1" / "td3bc-seed3" / "scores.json").unlink()  # no longer finished
+    config = root / "longer" / "td3bc-seed3" / "config.json"
+    config.write_text(json.dumps({**json.loads(config.read_text()), "steps": 10**6}))
+    report = tmp_path / "critic_probe.json"
+    report.write_text(json.dumps({"date_utc": "2026-12-04 06:18", "runs": list(old.values())}))
+
+    fresh = [{**now, "probed_utc": "2026-12-05 11:40"}]
+    kept = critic_probe.carried_rows(critic_probe.previous_report(report), fresh, 0, 500)
+    assert [row["arm"] for row in kept] == ["eta0"]
+    assert kept[0]["probed_utc"] == "2026-12-04 06:18" and kept[0]["q_mean"] == now["q_mean"]
+    dates = critic_probe.probe_dates(fresh + kept)
+    assert dates == "2026-12-04 06:18 UTC: 1 run; 2026-12-05 11:40 UTC: 1 run"
+    # with the check on, the row probed with the same horizon is carried, the one without is not
+    checked = critic_probe.carried_rows(critic_probe.previous_report(report), fresh, 6, 25)
+    assert [row["arm"] for row in checked] == ["checked"]
+    assert not critic_probe.carried_rows(critic_probe.previous_report(report), fresh, 6, 500)
+
+    report.write_text(json.dumps({"runs": [{"arm": "eta0"}]}))
+    with pytest.raises(DataFormatError, match="runs"):
+        critic_probe.previous_report(report)
+    report.write_text("[not json")
+    with pytest.raises(DataFormatError, match="unreadable JSON"):
+        critic_probe.previous_report(report)

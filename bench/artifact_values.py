@@ -1,0 +1,255 @@
+"""How each artifact's synthetic transitions look to critics that never saw them.
+
+A critic trained on the source alone (a finished η = 0 run: the referee) has its own view of
+what a transition is worth. For each artifact arm of a sweep folder this reads the artifact that
+the arm's runs trained on and reports, under every referee, the mean over the synthetic rows of
+
+- the target gap r + γ (1 − d) V(s') − Q(s, a): how much more a row promises than the referee
+  values its (s, a) at; a learner bootstraps towards that target, so rows that promise more than
+  the data supports lift its critic. The same gap over the source's own rows stands beside it;
+- the next-state lift V(s') − V(s'_source): the value of the synthetic next state against that
+  of the source's own next state from the same source state (HIPODE and plain model rollouts
+  start every synthetic row at a source row, its `source_index`).
+
+V is IQL's value net for an IQL referee and Q(s', π(s')) for a TD3+BC one; Q is the smaller
+twin. Every value is in the data's reward units (a referee that scaled its rewards is scaled
+back).
+
+    python bench/artifact_values.py bench/evidence/runs/walker2d-m-r-7f9d938b --artifacts td3bc
+
+writes artifact_values-<referee>.md and .json under <folder>/report/<artifacts learner>/. Needs the
+referee runs' checkpoint.pt files and the artifacts (neither is committed), and the runs' own
+source under the dataset root.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "bench"))
+
+from critic_probe import CHUNK, LEARNERS, critic_values, learner, read_record, run_folders  # noqa: E402
+
+REFEREE_ARM = "eta0"  # the arm whose runs never saw a synthetic row
+
+
+def artifact_arms(root: Path, learner_name: str) -> dict[str, dict]:
+    """arm -> the artifact its finished `learner_name` runs trained on (path and checksum, as
+    their config.json records them); arms without an artifact are left out, and an arm whose
+    runs disagree on the artifact is refused."""
+    from hipode_pipeline.errors import DataFormatError
+
+    arms: dict[str, dict] = {}
+    for scores in sorted(root.rglob(f"{learner_name}-seed*/scores.json")):
+        config_path = scores.parent / "config.json"
+        config = read_record(config_path, "artifact_path", "a run record of `hipode train`")
+        if not config["artifact_path"]:
+            continue
+        arm = scores.parent.parent.name
+        seen = arms.setdefault(
+            arm,
+            {
+                "artifact_path": config["artifact_path"],
+                "artifact_checksum": config.get("artifact_checksum"),
+                "source_id": config.get("source_id"),
+                "source_sha256": config.get("source_sha256"),
+            },
+        )
+        if seen["artifact_checksum"] != config.get("artifact_checksum"):
+            raise DataFormatError(
+                config_path,
+                "artifact_checksum",
+                f"{seen['artifact_checksum']}, the artifact of the arm's other runs",
+                config.get("artifact_checksum"),
+            )
+    return arms
+
+
+def state_values(model, observations):
+    """V(s) for raw observations, in the data's reward units: IQL's value net, else the
+    critic's value of the policy's own action."""
+    import torch
+
+    scale = float(getattr(model, "reward_scale", 1.0))
+    values = []
+    with torch.no_grad():
+        for start in range(0, len(observations), CHUNK):
+            obs = model.normalize(torch.as_tensor(observations[start : start + CHUNK]).unsqueeze(0))
+            if hasattr(model, "value"):
+                values.append(model.value(obs)[0, :, 0])
+            else:
+                action = model._policy_actions(obs).clamp(
+                    -model.config.max_action, model.config.max_action
+                )
+                values.append(model.critic(obs, action).amin(1)[0])
+    return torch.cat(values).numpy() / scale
+
+
+def target_gaps(model, data, discount: float):
+    """r + γ (1 − d) V(s') − Q(s, a) per row, and V(s')."""
+    next_values = state_values(model, data.next_observations)
+    q = critic_values(model, data.observations, data.actions)
+    target = data.rewards + discount * (1.0 - data.terminals) * next_values
+    return target - q, next_values
+
+
+def judge(model, source, artifacts: dict, discount: float) -> dict:
+    """One referee's view of the source's rows and of each artifact's."""
+    source_gap, source_next = target_gaps(model, source, discount)
+    row = {"source_gap": float(source_gap.mean()), "arms": {}}
+    for arm, artifact in artifacts.items():
+        data = artifact.transitions
+        gap, next_values = target_gaps(model, data, discount)
+        index = artifact.diagnostics["source_index"]
+        row["arms"][arm] = {
+            "gap": float(gap.mean()),
+            "excess": float(gap.mean() - source_gap.mean()),
+            "next_state_lift": float((next_values - source_next[index]).mean()),
+        }
+    return row
+
+
+def summary(per_referee: list[dict], arms: list[str]) -> list[dict]:
+    """Per arm: the mean over referees of each measure, with its smallest and largest."""
+    import numpy as np
+
+    rows = []
+    for arm in arms:
+        row = {"arm": arm}
+        for key in ("gap", "excess", "next_state_lift"):
+            values = np.array([r["arms"][arm][key] for r in per_referee])
+            row[key] = {"mean": values.mean(), "min": values.min(), "max": values.max()}
+        rows.append(row)
+    source = np.array([r["source_gap"] for r in per_referee])
+    rows.append(
+        {
+            "arm": "source rows",
+            "gap": {"mean": source.mean(), "min": source.min(), "max": source.max()},
+        }
+    )
+    return json_floats(rows)
+
+
+def json_floats(rows: list[dict]) -> list[dict]:
+    return [
+        {k: {m: float(x) for m, x in v.items()} if isinstance(v, dict) else v for k, v in r.items()}
+        for r in rows
+    ]
+
+
+def table(rows: list[dict], counts: dict[str, int], referees: int) -> str:
+    def cell(stat: dict | None) -> str:
+        if stat is None:
+            return ""
+        return f"{stat['mean']:+.1f} [{stat['min']:+.1f}, {stat['max']:+.1f}]"
+
+    head = (
+        f"| rows of | rows | target gap r + γV(s') − Q(s, a): mean over {referees} referees "
+        "[lowest, highest] | gap − the source rows' gap, per referee | next-state lift "
+        "V(s') − V(s'_source) |\n|---|---|---|---|---|\n"
+    )
+    return head + "".join(
+        f"| {r['arm']} | {counts[r['arm']]:,} | {cell(r['gap'])} | {cell(r.get('excess'))} | "
+        f"{cell(r.get('next_state_lift'))} |\n"
+        for r in rows
+    )
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("folder", type=Path, help="A sweep folder (bench/evidence/runs/<...>).")
+    parser.add_argument(
+        "--artifacts", default="td3bc", choices=sorted(LEARNERS), help="Whose runs' artifacts."
+    )
+    parser.add_argument(
+        "--referee", default="iql", choices=sorted(LEARNERS), help="Whose η = 0 runs judge them."
+    )
+    args = parser.parse_args(argv)
+    os.chdir(REPO)
+    from hipode_pipeline.artifact import read_artifact
+    from hipode_pipeline.data.load import load_source
+    from hipode_pipeline.errors import DataFormatError
+    from hipode_pipeline.files import display_path, write_json_atomic, write_text_atomic
+    from hipode_pipeline.paths import datasets_root
+    from hipode_pipeline.run_folder import load_checkpoint
+    from hipode_pipeline.threads import torch_threads
+    from hipode_pipeline.versions import package_versions
+
+    root = args.folder.resolve()
+    arms = artifact_arms(root, args.artifacts)
+    referees = [f for f in run_folders(root, args.referee) if f.parent.name == REFEREE_ARM]
+    if not arms or not referees:
+        sys.exit(
+            f"{args.folder}: expected finished {args.artifacts} runs on an artifact and "
+            f"{args.referee} η = 0 runs with their checkpoint.pt; found {len(arms)} artifact "
+            f"arms and {len(referees)} referees"
+        )
+    first = next(iter(arms.values()))
+    source, info = load_source(first["source_id"], datasets_root())
+    artifacts = {}
+    for arm, record in arms.items():
+        if record["source_sha256"] != info.sha256:
+            raise DataFormatError(
+                record["artifact_path"],
+                "source_sha256",
+                f"{info.sha256} (the source of the folder's other runs)",
+                record["source_sha256"],
+            )
+        artifact = read_artifact(REPO / record["artifact_path"])  # verifies its own checksum
+        if artifact.manifest["checksum"] != record["artifact_checksum"]:
+            raise DataFormatError(
+                artifact.path,
+                "checksum",
+                f"{record['artifact_checksum']}, the artifact the {arm} runs trained on "
+                "(rebuild it with the sweep)",
+                artifact.manifest["checksum"],
+            )
+        artifacts[arm] = artifact
+    start = time.time()
+    per_referee = []
+    with torch_threads(1):
+        for folder in referees:
+            state = load_checkpoint(folder / "checkpoint.pt")["learner"]
+            model = learner(state, source.obs_dim, source.act_dim, str(folder / "checkpoint.pt"))
+            discount = float(state["config"].get("discount", 0.99))
+            per_referee.append(
+                {"run": display_path(folder), "seed": int(state["seed"])}
+                | judge(model, source, artifacts, discount)
+            )
+    rows = summary(per_referee, sorted(artifacts))
+    counts = {arm: len(a) for arm, a in artifacts.items()} | {"source rows": len(source.rewards)}
+    out = args.folder / "report" / args.artifacts
+    out.mkdir(parents=True, exist_ok=True)
+    record = {
+        "command": "python bench/artifact_values.py " + " ".join(argv or sys.argv[1:]),
+        "date_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime()),
+        "seconds": round(time.time() - start, 1),
+        "versions": package_versions(),
+        "artifacts": {arm: arms[arm] | {"rows": counts[arm]} for arm in sorted(arms)},
+        "per_referee": per_referee,
+        "summary": rows,
+    }
+    name = f"artifact_values-{args.referee}"
+    write_json_atomic(out / f"{name}.json", record)
+    text = table(rows, counts, len(per_referee))
+    write_text_atomic(
+        out / f"{name}.md",
+        f"# {LEARNERS[args.artifacts]} artifacts under {LEARNERS[args.referee]} critics that "
+        f"never saw them\n\n`{record['command']}` ({record['date_utc']} UTC). Referees: the "
+        f"{len(per_referee)} finished {REFEREE_ARM} runs of {LEARNERS[args.referee]}. A "
+        "positive target gap: the rows promise more than the referee values their (s, a) at.\n\n"
+        + text,
+    )
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
