@@ -1,15 +1,18 @@
 """How each artifact's synthetic transitions look to critics that never saw them.
 
-A critic trained on the source alone (a finished η = 0 run: the referee) has its own view of
-what a transition is worth. For each artifact arm of a sweep folder this reads the artifact that
-the arm's runs trained on and reports, under every referee, the mean over the synthetic rows of
+A critic trained on the source alone (a finished η = 0 run with its checkpoint: the referee) has
+its own view of what a transition is worth. For each artifact arm of a sweep folder this reads
+the artifact that the arm's runs trained on and reports, under every referee, means over the
+synthetic rows of
 
 - the target gap r + γ (1 − d) V(s') − Q(s, a): how much more a row promises than the referee
-  values its (s, a) at; a learner bootstraps towards that target, so rows that promise more than
-  the data supports lift its critic. The same gap over the source's own rows stands beside it;
-- the next-state lift V(s') − V(s'_source): the value of the synthetic next state against that
-  of the source's own next state from the same source state (HIPODE and plain model rollouts
-  start every synthetic row at a source row, its `source_index`).
+  values its (s, a) at; a learner bootstraps towards that target, so rows that promise more
+  than the data supports lift its critic. Its excess is taken row by row over the gap of the
+  source row the synthetic row starts from (its `source_index`), so that which states were
+  drawn does not count; the gap over all source rows stands beside it;
+- the next-state lift V(s') − V(s'_source) on the rows that bootstrap (not terminal): the
+  value of the synthetic next state against that of the source's own next state from the same
+  source row.
 
 V is IQL's value net for an IQL referee and Q(s', π(s')) for a TD3+BC one; Q is the smaller
 twin. Every value is in the data's reward units (a referee that scaled its rewards is scaled
@@ -19,7 +22,7 @@ back).
 
 writes artifact_values-<referee>.md and .json under <folder>/report/<artifacts learner>/. Needs the
 referee runs' checkpoint.pt files and the artifacts (neither is committed), and the runs' own
-source under the dataset root.
+source under the dataset root; an artifact or referee of another source is refused.
 """
 
 from __future__ import annotations
@@ -73,6 +76,67 @@ def artifact_arms(root: Path, learner_name: str) -> dict[str, dict]:
     return arms
 
 
+def load_artifacts(arms: dict[str, dict], source, info) -> dict:
+    """arm -> its artifact, read and verified, refused unless it is the one the arm's runs
+    recorded, generated from this source, with every `source_index` a row of it."""
+    from hipode_pipeline.artifact import read_artifact
+    from hipode_pipeline.errors import DataFormatError
+    from hipode_pipeline.merge import check_pair
+
+    artifacts = {}
+    for arm, record in arms.items():
+        path = REPO / record["artifact_path"]
+        if record["source_sha256"] != info.sha256:
+            raise DataFormatError(
+                path,
+                "source_sha256",
+                f"{info.sha256} (the folder's source)",
+                record["source_sha256"],
+            )
+        artifact = read_artifact(path)  # verifies its own content checksum
+        if artifact.manifest["checksum"] != record["artifact_checksum"]:
+            raise DataFormatError(
+                path,
+                "checksum",
+                f"{record['artifact_checksum']}, the artifact the {arm} runs trained on "
+                "(rebuild it with the sweep)",
+                artifact.manifest["checksum"],
+            )
+        check_pair(source, info, artifact)
+        index = artifact.diagnostics["source_index"]
+        if index.min() < 0 or index.max() >= len(source):
+            raise DataFormatError(
+                path,
+                "source_index",
+                f"rows of the source, 0 to {len(source) - 1}",
+                f"{index.min()} to {index.max()}",
+            )
+        artifacts[arm] = artifact
+    return artifacts
+
+
+def load_referee(folder: Path, source, info, referee: str):
+    """A finished η = 0 run's learner and discount, refused unless it is `referee`'s and was
+    trained on this source."""
+    from hipode_pipeline.errors import DataFormatError
+    from hipode_pipeline.run_folder import load_checkpoint
+
+    config = read_record(folder / "config.json", "source_sha256", "a run record of `hipode train`")
+    if config["source_sha256"] != info.sha256:
+        raise DataFormatError(
+            folder / "config.json",
+            "source_sha256",
+            f"{info.sha256} (the folder's source)",
+            config["source_sha256"],
+        )
+    checkpoint = folder / "checkpoint.pt"
+    state = load_checkpoint(checkpoint)["learner"]
+    if state["learner"] != referee:
+        raise DataFormatError(checkpoint, "learner", f"'{referee}'", state["learner"])
+    model = learner(state, source.obs_dim, source.act_dim, str(checkpoint))
+    return model, float(state["config"].get("discount", 0.99))
+
+
 def state_values(model, observations):
     """V(s) for raw observations, in the data's reward units: IQL's value net, else the
     critic's value of the policy's own action."""
@@ -83,7 +147,7 @@ def state_values(model, observations):
     with torch.no_grad():
         for start in range(0, len(observations), CHUNK):
             obs = model.normalize(torch.as_tensor(observations[start : start + CHUNK]).unsqueeze(0))
-            if hasattr(model, "value"):
+            if model.name == "iql":
                 values.append(model.value(obs)[0, :, 0])
             else:
                 action = model._policy_actions(obs).clamp(
@@ -109,10 +173,12 @@ def judge(model, source, artifacts: dict, discount: float) -> dict:
         data = artifact.transitions
         gap, next_values = target_gaps(model, data, discount)
         index = artifact.diagnostics["source_index"]
+        bootstraps = ~data.terminals  # a terminal row's V(s') enters no target
+        lift = next_values[bootstraps] - source_next[index[bootstraps]]
         row["arms"][arm] = {
             "gap": float(gap.mean()),
-            "excess": float(gap.mean() - source_gap.mean()),
-            "next_state_lift": float((next_values - source_next[index]).mean()),
+            "excess": float((gap - source_gap[index]).mean()),
+            "next_state_lift": float(lift.mean()) if len(lift) else None,
         }
     return row
 
@@ -125,7 +191,10 @@ def summary(per_referee: list[dict], arms: list[str]) -> list[dict]:
     for arm in arms:
         row = {"arm": arm}
         for key in ("gap", "excess", "next_state_lift"):
-            values = np.array([r["arms"][arm][key] for r in per_referee])
+            values = np.array([r["arms"][arm][key] for r in per_referee], dtype=float)
+            if np.isnan(values).any():  # an artifact of terminal rows only: no lift to show
+                row[key] = None
+                continue
             row[key] = {"mean": values.mean(), "min": values.min(), "max": values.max()}
         rows.append(row)
     source = np.array([r["source_gap"] for r in per_referee])
@@ -139,6 +208,7 @@ def summary(per_referee: list[dict], arms: list[str]) -> list[dict]:
 
 
 def json_floats(rows: list[dict]) -> list[dict]:
+    """numpy scalars as floats, so that the record is plain JSON."""
     return [
         {k: {m: float(x) for m, x in v.items()} if isinstance(v, dict) else v for k, v in r.items()}
         for r in rows
@@ -146,15 +216,17 @@ def json_floats(rows: list[dict]) -> list[dict]:
 
 
 def table(rows: list[dict], counts: dict[str, int], referees: int) -> str:
+    """Per arm and for the source rows: each measure's mean over the referees [lowest, highest]."""
+
     def cell(stat: dict | None) -> str:
         if stat is None:
             return ""
         return f"{stat['mean']:+.1f} [{stat['min']:+.1f}, {stat['max']:+.1f}]"
 
     head = (
-        f"| rows of | rows | target gap r + γV(s') − Q(s, a): mean over {referees} referees "
-        "[lowest, highest] | gap − the source rows' gap, per referee | next-state lift "
-        "V(s') − V(s'_source) |\n|---|---|---|---|---|\n"
+        f"| rows of | rows | target gap r + γ(1 − d)V(s') − Q(s, a): mean over {referees} "
+        f"referee{'s' * (referees > 1)} [lowest, highest] | gap − the gap of its own source row "
+        "| next-state lift V(s') − V(s'_source), rows not terminal |\n|---|---|---|---|---|\n"
     )
     return head + "".join(
         f"| {r['arm']} | {counts[r['arm']]:,} | {cell(r['gap'])} | {cell(r.get('excess'))} | "
@@ -173,17 +245,14 @@ def main(argv: list[str] | None = None) -> None:
         "--referee", default="iql", choices=sorted(LEARNERS), help="Whose η = 0 runs judge them."
     )
     args = parser.parse_args(argv)
+    root = args.folder.resolve()  # before the chdir: a folder relative to the caller's directory
     os.chdir(REPO)
-    from hipode_pipeline.artifact import read_artifact
     from hipode_pipeline.data.load import load_source
-    from hipode_pipeline.errors import DataFormatError
     from hipode_pipeline.files import display_path, write_json_atomic, write_text_atomic
     from hipode_pipeline.paths import datasets_root
-    from hipode_pipeline.run_folder import load_checkpoint
     from hipode_pipeline.threads import torch_threads
     from hipode_pipeline.versions import package_versions
 
-    root = args.folder.resolve()
     arms = artifact_arms(root, args.artifacts)
     referees = [f for f in run_folders(root, args.referee) if f.parent.name == REFEREE_ARM]
     if not arms or not referees:
@@ -192,41 +261,20 @@ def main(argv: list[str] | None = None) -> None:
             f"{args.referee} η = 0 runs with their checkpoint.pt; found {len(arms)} artifact "
             f"arms and {len(referees)} referees"
         )
-    first = next(iter(arms.values()))
-    source, info = load_source(first["source_id"], datasets_root())
-    artifacts = {}
-    for arm, record in arms.items():
-        if record["source_sha256"] != info.sha256:
-            raise DataFormatError(
-                record["artifact_path"],
-                "source_sha256",
-                f"{info.sha256} (the source of the folder's other runs)",
-                record["source_sha256"],
-            )
-        artifact = read_artifact(REPO / record["artifact_path"])  # verifies its own checksum
-        if artifact.manifest["checksum"] != record["artifact_checksum"]:
-            raise DataFormatError(
-                artifact.path,
-                "checksum",
-                f"{record['artifact_checksum']}, the artifact the {arm} runs trained on "
-                "(rebuild it with the sweep)",
-                artifact.manifest["checksum"],
-            )
-        artifacts[arm] = artifact
+    source, info = load_source(next(iter(arms.values()))["source_id"], datasets_root())
+    artifacts = load_artifacts(arms, source, info)
     start = time.time()
     per_referee = []
     with torch_threads(1):
         for folder in referees:
-            state = load_checkpoint(folder / "checkpoint.pt")["learner"]
-            model = learner(state, source.obs_dim, source.act_dim, str(folder / "checkpoint.pt"))
-            discount = float(state["config"].get("discount", 0.99))
+            model, discount = load_referee(folder, source, info, args.referee)
             per_referee.append(
-                {"run": display_path(folder), "seed": int(state["seed"])}
+                {"run": display_path(folder), "seed": model.seeds[0]}
                 | judge(model, source, artifacts, discount)
             )
     rows = summary(per_referee, sorted(artifacts))
     counts = {arm: len(a) for arm, a in artifacts.items()} | {"source rows": len(source.rewards)}
-    out = args.folder / "report" / args.artifacts
+    out = root / "report" / args.artifacts
     out.mkdir(parents=True, exist_ok=True)
     record = {
         "command": "python bench/artifact_values.py " + " ".join(argv or sys.argv[1:]),
@@ -244,9 +292,10 @@ def main(argv: list[str] | None = None) -> None:
         out / f"{name}.md",
         f"# {LEARNERS[args.artifacts]} artifacts under {LEARNERS[args.referee]} critics that "
         f"never saw them\n\n`{record['command']}` ({record['date_utc']} UTC). Referees: the "
-        f"{len(per_referee)} finished {REFEREE_ARM} runs of {LEARNERS[args.referee]}. A "
-        "positive target gap: the rows promise more than the referee values their (s, a) at.\n\n"
-        + text,
+        f"{len(per_referee)} finished {REFEREE_ARM} runs of {LEARNERS[args.referee]} whose "
+        f"checkpoint.pt is on disk (training seeds {', '.join(str(r['seed']) for r in per_referee)}"
+        "). A positive target gap: the rows promise more than the referee values their (s, a) "
+        "at.\n\n" + text,
     )
     print(text)
 

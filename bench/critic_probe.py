@@ -197,6 +197,8 @@ def probe(
         check = policy_value_check(model, source, env_id, starts, horizon, discount)
     return {
         "run": display_path(folder),
+        "source_sha256": config.get("source_sha256"),
+        "artifact_checksum": config.get("artifact_checksum"),
         "arm": folder.parent.name,
         "seed": int(config["seed"]),
         "step": int(state["step"]),
@@ -224,34 +226,49 @@ def read_record(path: Path, field: str, expected: str) -> dict:
 
 
 def previous_report(path: Path) -> dict:
-    """The critic_probe.json that this run replaces, checked to hold probe rows."""
+    """The critic_probe.json that this run replaces, checked to hold dated probe rows."""
     from hipode_pipeline.errors import DataFormatError
 
     expected = "a list of probe rows written by bench/critic_probe.py"
     record = read_record(path, "runs", expected)
+    if not isinstance(record.get("date_utc"), str):
+        raise DataFormatError(path, "date_utc", "the date the rows were probed", "none")
     rows = record["runs"]
-    if not isinstance(rows, list) or not all(isinstance(r, dict) and "run" in r for r in rows):
-        raise DataFormatError(path, "runs", expected)
+    keys = ("run", "arm", "seed", "step")
+    if not isinstance(rows, list) or not all(
+        isinstance(r, dict) and all(k in r for k in keys) for r in rows
+    ):
+        raise DataFormatError(path, "runs", f"{expected}, each with {', '.join(keys)}")
     return record
 
 
 def carried_rows(previous: dict, probed: list[dict], states: int, horizon: int) -> list[dict]:
     """Rows of the previous report (`previous`, its parsed JSON) for runs that were not probed
     now because their checkpoint is gone: a run still finished (scores.json), with as many
-    updates as when it was probed, under the same check settings. Each keeps its probe date."""
-    fresh = {row["run"] for row in probed}
+    updates, the same source and artifact as when it was probed, under the same check settings
+    (`states`: the number of states the fresh rows were checked at). Each keeps its probe
+    date."""
+    fresh = {(REPO / row["run"]).resolve() for row in probed}
     kept = []
     for row in previous["runs"]:
-        folder = REPO / str(row.get("run"))
-        if row.get("run") in fresh or not (folder / "scores.json").is_file():
+        folder = (REPO / str(row["run"])).resolve()
+        if folder in fresh or (folder / "checkpoint.pt").is_file():
+            continue  # probed now, or probed again when its checkpoint is back
+        if not (folder / "scores.json").is_file():
             continue
         config = read_record(folder / "config.json", "seed", "a run record of `hipode train`")
-        if config.get("steps", row.get("step")) != row.get("step"):
+        if config.get("steps", row["step"]) != row["step"]:
             continue  # trained further since: its old row is stale
+        if any(
+            k in row and config.get(k) != row[k] for k in ("source_sha256", "artifact_checksum")
+        ):
+            continue  # trained again on other data since
         checked = "q_policy" in row
-        if checked != bool(states) or (checked and row.get("horizon") != horizon):
+        if checked != bool(states) or (
+            checked and (row.get("horizon"), row.get("states")) != (horizon, states)
+        ):
             continue
-        kept.append({**row, "probed_utc": row.get("probed_utc", previous.get("date_utc"))})
+        kept.append({**row, "probed_utc": row.get("probed_utc", previous["date_utc"])})
     return kept
 
 
@@ -327,6 +344,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     if args.states < 0 or args.horizon < 1:
         sys.exit(f"expected --states ≥ 0 and --horizon ≥ 1, found {args.states}, {args.horizon}")
+    root = args.folder.resolve()  # before the chdir: a folder relative to the caller's directory
     os.chdir(REPO)
     from hipode_pipeline.data.load import load_source
     from hipode_pipeline.files import write_json_atomic, write_text_atomic
@@ -334,7 +352,7 @@ def main(argv: list[str] | None = None) -> None:
     from hipode_pipeline.threads import torch_threads
     from hipode_pipeline.versions import package_versions
 
-    folders = run_folders(args.folder.resolve(), args.learner)
+    folders = run_folders(root, args.learner)
     if not folders:
         sys.exit(f"{args.folder}: no finished {args.learner} run with its checkpoint.pt under it")
     configs = {f: json.loads((f / "config.json").read_text()) for f in folders}
@@ -345,10 +363,11 @@ def main(argv: list[str] | None = None) -> None:
     with torch_threads(1):
         rows = [probe(f, configs[f], sources, args.states, args.horizon) for f in folders]
     rows = [{**row, "probed_utc": now} for row in rows]
-    out = args.folder / "report" / args.learner
+    out = root / "report" / args.learner
     previous = out / "critic_probe.json"
     if previous.is_file():
-        rows += carried_rows(previous_report(previous), rows, args.states, args.horizon)
+        checked = next((row["states"] for row in rows if "states" in row), args.states)
+        rows += carried_rows(previous_report(previous), rows, checked, args.horizon)
     rows.sort(key=lambda r: (r["arm"], r["seed"]))
     out.mkdir(parents=True, exist_ok=True)
     record = {

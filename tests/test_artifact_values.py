@@ -85,8 +85,14 @@ def test_artifact_rows_are_judged_against_the_source_rows_by_the_referee(kind):
     assert row["source_gap"] == pytest.approx(float(source_gap.mean()), rel=1e-4, abs=1e-4)
     judged = row["arms"]["hipode"]
     assert judged["gap"] == pytest.approx(float(gap.mean()), rel=1e-4, abs=1e-4)
-    assert judged["excess"] == pytest.approx(float(gap.mean() - source_gap.mean()), abs=1e-4)
-    lift = next_values - source_next[index]  # against the next state of its own source row
+    # each row against the gap of the source row it starts from, not the mean of all of them
+    paired = float((gap - source_gap[index]).mean())
+    assert abs(paired - (gap.mean() - source_gap.mean())) > 0.05
+    assert judged["excess"] == pytest.approx(paired, rel=1e-4, abs=1e-4)
+    # against the next state of its own source row, on the rows whose V(s') enters a target
+    alive = ~synthetic.terminals
+    assert 0 < alive.sum() < len(alive)
+    lift = next_values[alive] - source_next[index[alive]]
     assert judged["next_state_lift"] == pytest.approx(float(lift.mean()), rel=1e-4, abs=1e-4)
 
 
@@ -133,3 +139,69 @@ def test_each_arm_names_the_artifact_its_runs_trained_on(tmp_path):
     run(root / "hipode" / "td3bc-seed2", "a.hdf5", "sha256:cc")  # rebuilt between runs
     with pytest.raises(DataFormatError, match="artifact_checksum.*sha256:aa"):
         artifact_values.artifact_arms(tmp_path, "td3bc")
+
+
+def written_artifact(path: Path, data: Transitions, sha: str, index) -> Path:
+    from hipode_pipeline.artifact import write_artifact
+
+    diagnostics = {
+        "dynamics_error": np.zeros(len(data), np.float32),
+        "value": np.zeros(len(data), np.float32),
+        "source_index": np.asarray(index, np.int64),
+    }
+    write_artifact(path, data, diagnostics, {"source": {"sha256": sha, "env_id": "Walker2d-v5"}})
+    return path
+
+
+def test_an_artifact_or_referee_that_does_not_fit_the_source_is_refused(tmp_path):
+    from hipode_pipeline.artifact import read_manifest
+    from hipode_pipeline.data.transitions import SourceInfo
+    from hipode_pipeline.run_folder import save_checkpoint
+
+    source = rows(40, seed=0)
+    sha = source.sha256()
+    info = SourceInfo("local/walker2d/medium-replay-v0", "Walker2d-v5", 0, 1, sha, 40, "minari")
+    good = written_artifact(tmp_path / "good.hdf5", rows(10, 1), sha, np.arange(10))
+    record = {
+        "artifact_path": str(good),
+        "artifact_checksum": read_manifest(good)["checksum"],
+        "source_sha256": sha,
+    }
+    loaded = artifact_values.load_artifacts({"hipode": record}, source, info)
+    assert len(loaded["hipode"]) == 10
+
+    def refused(arms, match):
+        with pytest.raises(DataFormatError, match=match):
+            artifact_values.load_artifacts(arms, source, info)
+
+    refused({"hipode": record | {"artifact_checksum": "sha256:00"}}, "checksum.*rebuild")
+    refused({"hipode": record | {"source_sha256": "cd" * 32}}, "source_sha256")
+    other = written_artifact(tmp_path / "other.hdf5", rows(10, 1), "ef" * 32, np.arange(10))
+    refused(
+        {
+            "hipode": record
+            | {"artifact_path": str(other), "artifact_checksum": read_manifest(other)["checksum"]}
+        },
+        "manifest.source.sha256",
+    )
+    for bad in ([-1] + [0] * 9, [40] + [0] * 9):  # numpy would read a negative index from the end
+        wrong = written_artifact(tmp_path / f"index{bad[0]}.hdf5", rows(10, 1), sha, bad)
+        arms = {
+            "hipode": record
+            | {"artifact_path": str(wrong), "artifact_checksum": read_manifest(wrong)["checksum"]}
+        }
+        refused(arms, "source_index.*0 to 39")
+
+    folder = tmp_path / "eta0" / "iql-seed0"
+    folder.mkdir(parents=True)
+    model = IQL(11, 3, seed=4)
+    model.fit_statistics(source)
+    save_checkpoint(folder / "checkpoint.pt", {"learner": model.seed_state(0)})
+    (folder / "config.json").write_text(json.dumps({"seed": 4, "source_sha256": sha}))
+    referee, discount = artifact_values.load_referee(folder, source, info, "iql")
+    assert referee.name == "iql" and referee.seeds == [4] and discount == pytest.approx(0.99)
+    with pytest.raises(DataFormatError, match="learner.*'td3bc'"):
+        artifact_values.load_referee(folder, source, info, "td3bc")
+    (folder / "config.json").write_text(json.dumps({"seed": 4, "source_sha256": "cd" * 32}))
+    with pytest.raises(DataFormatError, match="source_sha256"):
+        artifact_values.load_referee(folder, source, info, "iql")

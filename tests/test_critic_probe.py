@@ -5,6 +5,7 @@ in the simulator; a run of another source refused."""
 from __future__ import annotations
 
 import json
+import os
 import sys
 from pathlib import Path
 from types import SimpleNamespace
@@ -54,7 +55,12 @@ def finished_run(
         model.critic.biases[-1][:, 1].fill_(q_second)
     folder.mkdir(parents=True)
     save_checkpoint(folder / "checkpoint.pt", {"learner": model.seed_state(0)})
-    record = {"seed": 3, "source_id": "local/hopper/medium-replay-v0", "source_sha256": sha}
+    record = {
+        "seed": 3,
+        "steps": int(model.step),
+        "source_id": "local/hopper/medium-replay-v0",
+        "source_sha256": sha,
+    }
     (folder / "config.json").write_text(json.dumps(record))
     (folder / "scores.json").write_text("{}")
     return record
@@ -209,19 +215,19 @@ def test_rows_of_runs_whose_checkpoints_are_gone_are_carried_with_their_probe_da
     data = source()
     sha = "ab" * 32
     root = tmp_path / "hopper-m-r"
-    configs = {
-        arm: finished_run(root / arm / "td3bc-seed3", data, sha, 1.0, 1.0)
-        for arm in ("eta0", "hipode", "lam1", "longer", "checked")
-    }
+    arms = ("eta0", "hipode", "lam1", "longer", "retrained", "checked")
+    configs = {arm: finished_run(root / arm / "td3bc-seed3", data, sha, 1.0, 1.0) for arm in arms}
     sources = {"local/hopper/medium-replay-v0": (data, SimpleNamespace(sha256=sha))}
     now = critic_probe.probe(root / "hipode" / "td3bc-seed3", configs["hipode"], sources, states=0)
-    old = {
-        arm: {**now, "run": str(root / arm / "td3bc-seed3"), "arm": arm}
-        for arm in ("eta0", "hipode", "lam1", "longer", "checked", "deleted")
-    }
-    old["hipode"].update(run=now["run"], q_mean=-1.0)  # probed again now: the fresh row wins
+    assert now["source_sha256"] == sha and now["step"] == configs["hipode"]["steps"]
+    old = {arm: {**now, "run": str(root / arm / "td3bc-seed3"), "arm": arm} for arm in arms}
+    old["deleted"] = {**now, "run": str(root / "deleted" / "td3bc-seed3"), "arm": "deleted"}
+    # written relative to the repository by another invocation: still the same run
+    old["eta0"]["run"] = os.path.relpath(root / "eta0" / "td3bc-seed3", critic_probe.REPO)
+    old["hipode"].update(run=os.path.relpath(now["run"], critic_probe.REPO), q_mean=-1.0)
+    old["retrained"]["source_sha256"] = "cd" * 32  # trained on another source since
     old["checked"].update(q_policy=1.0, states=6, horizon=25)  # another check setting
-    for arm in ("eta0", "lam1", "longer", "checked"):
+    for arm in ("eta0", "lam1", "longer", "retrained", "checked"):
         (root / arm / "td3bc-seed3" / "checkpoint.pt").unlink()  # gone with their machine
     (root / "lam1" / "td3bc-seed3" / "scores.json").unlink()  # no longer finished
     config = root / "longer" / "td3bc-seed3" / "config.json"
@@ -230,18 +236,22 @@ def test_rows_of_runs_whose_checkpoints_are_gone_are_carried_with_their_probe_da
     report.write_text(json.dumps({"date_utc": "2026-12-04 06:18", "runs": list(old.values())}))
 
     fresh = [{**now, "probed_utc": "2026-12-05 11:40"}]
-    kept = critic_probe.carried_rows(critic_probe.previous_report(report), fresh, 0, 500)
-    assert [row["arm"] for row in kept] == ["eta0"]
+    previous = critic_probe.previous_report(report)
+    kept = critic_probe.carried_rows(previous, fresh, 0, 500)
+    assert [row["arm"] for row in kept] == ["eta0"]  # hipode: the fresh row, not the old one
     assert kept[0]["probed_utc"] == "2026-12-04 06:18" and kept[0]["q_mean"] == now["q_mean"]
     dates = critic_probe.probe_dates(fresh + kept)
     assert dates == "2026-12-04 06:18 UTC: 1 run; 2026-12-05 11:40 UTC: 1 run"
-    # with the check on, the row probed with the same horizon is carried, the one without is not
-    checked = critic_probe.carried_rows(critic_probe.previous_report(report), fresh, 6, 25)
-    assert [row["arm"] for row in checked] == ["checked"]
-    assert not critic_probe.carried_rows(critic_probe.previous_report(report), fresh, 6, 500)
+    # with the check on, only the row checked at as many states over the same horizon
+    assert [r["arm"] for r in critic_probe.carried_rows(previous, fresh, 6, 25)] == ["checked"]
+    assert not critic_probe.carried_rows(previous, fresh, 6, 500)
+    assert not critic_probe.carried_rows(previous, fresh, 5, 25)
 
-    report.write_text(json.dumps({"runs": [{"arm": "eta0"}]}))
-    with pytest.raises(DataFormatError, match="runs"):
+    report.write_text(json.dumps({"date_utc": "x", "runs": [{"run": "a", "arm": "eta0"}]}))
+    with pytest.raises(DataFormatError, match="runs.*each with run, arm, seed, step"):
+        critic_probe.previous_report(report)
+    report.write_text(json.dumps({"runs": []}))
+    with pytest.raises(DataFormatError, match="date_utc"):
         critic_probe.previous_report(report)
     report.write_text("[not json")
     with pytest.raises(DataFormatError, match="unreadable JSON"):
