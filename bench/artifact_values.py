@@ -39,7 +39,14 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
 
-from critic_probe import CHUNK, LEARNERS, critic_values, learner, read_record, run_folders  # noqa: E402
+from critic_probe import (  # noqa: E402
+    LEARNERS,
+    critic_values,
+    in_reward_units,
+    learner,
+    read_record,
+    run_folders,
+)
 
 REFEREE_ARM = "eta0"  # the arm whose runs never saw a synthetic row
 
@@ -139,22 +146,15 @@ def load_referee(folder: Path, source, info, referee: str):
 
 def state_values(model, observations):
     """V(s) for raw observations, in the data's reward units: IQL's value net, else the
-    critic's value of the policy's own action."""
-    import torch
+    critic's value of the policy's own (clamped) action."""
 
-    scale = float(getattr(model, "reward_scale", 1.0))
-    values = []
-    with torch.no_grad():
-        for start in range(0, len(observations), CHUNK):
-            obs = model.normalize(torch.as_tensor(observations[start : start + CHUNK]).unsqueeze(0))
-            if model.name == "iql":
-                values.append(model.value(obs)[0, :, 0])
-            else:
-                action = model._policy_actions(obs).clamp(
-                    -model.config.max_action, model.config.max_action
-                )
-                values.append(model.critic(obs, action).amin(1)[0])
-    return torch.cat(values).numpy() / scale
+    def value(obs, _):
+        if model.name == "iql":
+            return model.value(obs)[0, :, 0]
+        action = model._policy_actions(obs).clamp(-model.config.max_action, model.config.max_action)
+        return model.critic(obs, action).amin(1)[0]
+
+    return in_reward_units(model, value, observations)
 
 
 def target_gaps(model, data, discount: float):
@@ -183,36 +183,25 @@ def judge(model, source, artifacts: dict, discount: float) -> dict:
     return row
 
 
+def spread(values) -> dict[str, float] | None:
+    """mean, lowest and highest of one measure over the referees; None where a referee has
+    none (an artifact of terminal rows only has no lift)."""
+    if any(v is None for v in values):
+        return None
+    return {"mean": sum(values) / len(values), "min": min(values), "max": max(values)}
+
+
 def summary(per_referee: list[dict], arms: list[str]) -> list[dict]:
-    """Per arm: the mean over referees of each measure, with its smallest and largest."""
-    import numpy as np
-
-    rows = []
-    for arm in arms:
-        row = {"arm": arm}
-        for key in ("gap", "excess", "next_state_lift"):
-            values = np.array([r["arms"][arm][key] for r in per_referee], dtype=float)
-            if np.isnan(values).any():  # an artifact of terminal rows only: no lift to show
-                row[key] = None
-                continue
-            row[key] = {"mean": values.mean(), "min": values.min(), "max": values.max()}
-        rows.append(row)
-    source = np.array([r["source_gap"] for r in per_referee])
-    rows.append(
-        {
-            "arm": "source rows",
-            "gap": {"mean": source.mean(), "min": source.min(), "max": source.max()},
+    """Per arm, and for the source rows: each measure's spread over the referees."""
+    rows = [
+        {"arm": arm}
+        | {
+            key: spread([r["arms"][arm][key] for r in per_referee])
+            for key in ("gap", "excess", "next_state_lift")
         }
-    )
-    return json_floats(rows)
-
-
-def json_floats(rows: list[dict]) -> list[dict]:
-    """numpy scalars as floats, so that the record is plain JSON."""
-    return [
-        {k: {m: float(x) for m, x in v.items()} if isinstance(v, dict) else v for k, v in r.items()}
-        for r in rows
+        for arm in arms
     ]
+    return rows + [{"arm": "source rows", "gap": spread([r["source_gap"] for r in per_referee])}]
 
 
 def table(rows: list[dict], counts: dict[str, int], referees: int) -> str:

@@ -23,7 +23,7 @@ not its policy's: its Q − return also holds the gap between the two. Needs the
 runs' checkpoint.pt files (not committed: run it in the session that trained them) and the
 runs' own source under the dataset root (its sha256 is checked against the runs' records). A
 finished run whose checkpoint is gone keeps its row from the previous report (same --states and
---horizon, same number of updates), with the date it was probed.
+--horizon, same number of updates, source and artifact), with the date it was probed.
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ import json
 import os
 import sys
 import time
+from collections import Counter
 from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
@@ -103,19 +104,28 @@ def learner(state: dict, obs_dim: int, act_dim: int, origin: str):
     return model
 
 
-def critic_values(model, observations, actions):
-    """min over the twin critics of Q(s, a) for every row, on the CPU, in chunks, in the data's
-    reward units (a learner that scaled its rewards has its values scaled back)."""
+def in_reward_units(model, evaluate, observations, actions=None):
+    """`evaluate(normalized states, actions)` -> one value per row, for every row, on the CPU,
+    in chunks (bounded memory on a large source), divided by the learner's reward scale so
+    that a learner that scaled its rewards reads in the data's units. Both arguments come as
+    one-seed (1, n, ·) tensors; actions None where `evaluate` needs none."""
     import torch
 
     scale = float(getattr(model, "reward_scale", 1.0))
     values = []
     with torch.no_grad():
         for start in range(0, len(observations), CHUNK):
-            obs = torch.as_tensor(observations[start : start + CHUNK]).unsqueeze(0)
-            act = torch.as_tensor(actions[start : start + CHUNK]).unsqueeze(0)
-            values.append(model.critic(model.normalize(obs), act).amin(1)[0])
+            obs = model.normalize(torch.as_tensor(observations[start : start + CHUNK]).unsqueeze(0))
+            act = None if actions is None else actions[start : start + CHUNK]
+            values.append(evaluate(obs, None if act is None else torch.as_tensor(act).unsqueeze(0)))
     return torch.cat(values).numpy() / scale
+
+
+def critic_values(model, observations, actions):
+    """min over the twin critics of Q(s, a) for every row, in the data's reward units."""
+    return in_reward_units(
+        model, lambda obs, act: model.critic(obs, act).amin(1)[0], observations, actions
+    )
 
 
 def start_states(data, env_id: str, count: int):
@@ -274,9 +284,7 @@ def carried_rows(previous: dict, probed: list[dict], states: int, horizon: int) 
 
 def probe_dates(rows: list[dict]) -> str:
     """When the rows were probed, with how many each time."""
-    counts: dict[str, int] = {}
-    for row in rows:
-        counts[row["probed_utc"]] = counts.get(row["probed_utc"], 0) + 1
+    counts = Counter(row["probed_utc"] for row in rows)
     return "; ".join(f"{date} UTC: {n} run{'s' * (n > 1)}" for date, n in sorted(counts.items()))
 
 
@@ -355,7 +363,9 @@ def main(argv: list[str] | None = None) -> None:
     folders = run_folders(root, args.learner)
     if not folders:
         sys.exit(f"{args.folder}: no finished {args.learner} run with its checkpoint.pt under it")
-    configs = {f: json.loads((f / "config.json").read_text()) for f in folders}
+    configs = {
+        f: read_record(f / "config.json", "seed", "a run record of `hipode train`") for f in folders
+    }
     ids = {config["source_id"] for config in configs.values()}
     sources = {i: load_source(i, datasets_root()) for i in ids}
     start = time.time()
