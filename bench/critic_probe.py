@@ -22,8 +22,9 @@ scale, so every Q here is in the data's reward units. IQL's Q is an in-sample (e
 not its policy's: its Q − return also holds the gap between the two. Needs the
 runs' checkpoint.pt files (not committed: run it in the session that trained them) and the
 runs' own source under the dataset root (its sha256 is checked against the runs' records). A
-finished run whose checkpoint is gone keeps its row from the previous report (same --states and
---horizon, same number of updates, source and artifact), with the date it was probed.
+finished run whose checkpoint is gone keeps its row from the previous report (same number of
+updates, source and artifact), with the date it was probed: its falls columns always, its
+policy-value columns under the same --states and --horizon only.
 """
 
 from __future__ import annotations
@@ -138,6 +139,17 @@ def start_states(data, env_id: str, count: int):
     exact = np.flatnonzero(~clipped_velocity_rows(env_id, data.observations))
     rng = np.random.default_rng(STATES_SEED)
     return np.sort(rng.choice(exact, size=min(count, len(exact)), replace=False))
+
+
+# the columns of the policy-value check, which hold only for its --states and --horizon
+POLICY_KEYS = (
+    "states",
+    "horizon",
+    "q_policy",
+    "return_policy",
+    "q_policy_overestimate",
+    "falls_within_horizon",
+)
 
 
 def policy_value_check(model, data, env_id: str, rows, horizon: int, discount: float) -> dict:
@@ -255,9 +267,9 @@ def previous_report(path: Path) -> dict:
 def carried_rows(previous: dict, probed: list[dict], states: int, horizon: int) -> list[dict]:
     """Rows of the previous report (`previous`, its parsed JSON) for runs that were not probed
     now because their checkpoint is gone: a run still finished (scores.json), with as many
-    updates, the same source and artifact as when it was probed, under the same check settings
-    (`states`: the number of states the fresh rows were checked at). Each keeps its probe
-    date."""
+    updates, the same source and artifact as when it was probed. Its policy-value columns are
+    kept only under the same check settings (`states`: the number of states the fresh rows were
+    checked at, 0 for none; `horizon`); the falls columns always. Each keeps its probe date."""
     fresh = {(REPO / row["run"]).resolve() for row in probed}
     kept = []
     for row in previous["runs"]:
@@ -273,11 +285,9 @@ def carried_rows(previous: dict, probed: list[dict], states: int, horizon: int) 
             k in row and config.get(k) != row[k] for k in ("source_sha256", "artifact_checksum")
         ):
             continue  # trained again on other data since
-        checked = "q_policy" in row
-        if checked != bool(states) or (
-            checked and (row.get("horizon"), row.get("states")) != (horizon, states)
-        ):
-            continue
+        if (row.get("horizon"), row.get("states")) != (horizon, states):
+            # the falls columns hold under any check setting; the policy check's do not
+            row = {k: v for k, v in row.items() if k not in POLICY_KEYS}
         kept.append({**row, "probed_utc": row.get("probed_utc", previous["date_utc"])})
     return kept
 

@@ -226,7 +226,10 @@ def test_rows_of_runs_whose_checkpoints_are_gone_are_carried_with_their_probe_da
     old["eta0"]["run"] = os.path.relpath(root / "eta0" / "td3bc-seed3", critic_probe.REPO)
     old["hipode"].update(run=os.path.relpath(now["run"], critic_probe.REPO), q_mean=-1.0)
     old["retrained"]["source_sha256"] = "cd" * 32  # trained on another source since
-    old["checked"].update(q_policy=1.0, states=6, horizon=25)  # another check setting
+    old["checked"].update(  # checked at another setting
+        q_policy=1.0, return_policy=2.0, q_policy_overestimate=-1.0, falls_within_horizon=0
+    )
+    old["checked"].update(states=6, horizon=25)
     for arm in ("eta0", "lam1", "longer", "retrained", "checked"):
         (root / arm / "td3bc-seed3" / "checkpoint.pt").unlink()  # gone with their machine
     (root / "lam1" / "td3bc-seed3" / "scores.json").unlink()  # no longer finished
@@ -238,14 +241,22 @@ def test_rows_of_runs_whose_checkpoints_are_gone_are_carried_with_their_probe_da
     fresh = [{**now, "probed_utc": "2026-12-05 11:40"}]
     previous = critic_probe.previous_report(report)
     kept = critic_probe.carried_rows(previous, fresh, 0, 500)
-    assert [row["arm"] for row in kept] == ["eta0"]  # hipode: the fresh row, not the old one
+    # hipode: the fresh row, not the old one
+    assert [row["arm"] for row in kept] == ["eta0", "checked"]
     assert kept[0]["probed_utc"] == "2026-12-04 06:18" and kept[0]["q_mean"] == now["q_mean"]
     dates = critic_probe.probe_dates(fresh + kept)
-    assert dates == "2026-12-04 06:18 UTC: 1 run; 2026-12-05 11:40 UTC: 1 run"
-    # with the check on, only the row checked at as many states over the same horizon
-    assert [r["arm"] for r in critic_probe.carried_rows(previous, fresh, 6, 25)] == ["checked"]
-    assert not critic_probe.carried_rows(previous, fresh, 6, 500)
-    assert not critic_probe.carried_rows(previous, fresh, 5, 25)
+    assert dates == "2026-12-04 06:18 UTC: 2 runs; 2026-12-05 11:40 UTC: 1 run"
+    # the falls columns hold under any check; the policy check's only at its own setting
+    assert kept[1]["q_mean"] == now["q_mean"] and "q_policy" not in kept[1]
+    assert "return of π" not in critic_probe.table(fresh + kept)
+    same = critic_probe.carried_rows(previous, fresh, 6, 25)
+    assert [r["arm"] for r in same] == ["eta0", "checked"]
+    assert "q_policy" not in same[0] and same[1]["q_policy"] == 1.0
+    assert "| checked | 3 | 1.0 |" in critic_probe.table(same)
+    for states, horizon in ((6, 500), (5, 25)):
+        other = critic_probe.carried_rows(previous, fresh, states, horizon)
+        assert [r["arm"] for r in other] == ["eta0", "checked"]
+        assert not any(key in r for r in other for key in critic_probe.POLICY_KEYS)
 
     report.write_text(json.dumps({"date_utc": "x", "runs": [{"run": "a", "arm": "eta0"}]}))
     with pytest.raises(DataFormatError, match="runs.*each with run, arm, seed, step"):
