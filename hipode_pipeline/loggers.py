@@ -59,7 +59,12 @@ class WandbLogger:
         self.run.log(_scalars(metrics), step=step)
 
     def close(self) -> None:
+        import wandb
+
         self.run.finish()
+        # finish() can return before W&B's service has written the run's file; teardown waits
+        # for it (its atexit hook does not run in every worker process)
+        wandb.teardown()
 
 
 def make_logger(kind: str, run_dir: Path, config: dict[str, Any]):
