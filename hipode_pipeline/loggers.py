@@ -4,6 +4,7 @@ WANDB_MODE says otherwise, so it works without a network; `wandb sync` uploads l
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import os
 from pathlib import Path
@@ -59,12 +60,21 @@ class WandbLogger:
         self.run.log(_scalars(metrics), step=step)
 
     def close(self) -> None:
-        import wandb
-
         self.run.finish()
-        # finish() can return before W&B's service has written the run's file; teardown waits
-        # for it (its atexit hook does not run in every worker process)
-        wandb.teardown()
+
+
+def close_loggers(loggers: list) -> None:
+    """Close every logger of a training group, each even if another fails. W&B's `finish()`
+    can return before its service has written the run's file, and its atexit hook does not
+    run in every worker process: after the last W&B run of the group is finished, one
+    teardown waits for the writes (once, as it would finish any run still open)."""
+    with contextlib.ExitStack() as stack:
+        if any(isinstance(logger, WandbLogger) for logger in loggers):
+            import wandb
+
+            stack.callback(wandb.teardown)  # registered first: runs last
+        for logger in loggers:
+            stack.callback(logger.close)
 
 
 def make_logger(kind: str, run_dir: Path, config: dict[str, Any]):

@@ -33,7 +33,7 @@ from hipode_pipeline.files import display_path, output_lock, write_json_atomic
 from hipode_pipeline.generate import MAX_ETA
 from hipode_pipeline.learners import learner_class
 from hipode_pipeline.learners.base import Learner, fast_bf16
-from hipode_pipeline.loggers import check_logger, make_logger
+from hipode_pipeline.loggers import check_logger, close_loggers, make_logger
 from hipode_pipeline.machine import cpu_name, utc_now
 from hipode_pipeline.merge import MergedData, load_merged
 from hipode_pipeline.paths import stages_dir
@@ -668,8 +668,7 @@ def _train_loop(
     with contextlib.ExitStack() as files, console.progress(disable=not show_progress) as prog:
         metrics_files = [files.enter_context(open(r.run_dir / "metrics.jsonl", "a")) for r in group]
         loggers = [make_logger(logger, r.run_dir, r.config) for r in group]
-        for run_logger in loggers:
-            files.callback(run_logger.close)
+        files.callback(close_loggers, loggers)
         bar = prog.add_task(label, total=steps, completed=model.step, rate="", info="")
         # metric sums stay on the device between log lines: no host sync per update
         sums: dict[str, torch.Tensor] = {}

@@ -310,10 +310,18 @@ def test_wandb_logs_offline_when_asked(tmp_path, tiny_pair, monkeypatch):
     pytest.importorskip("wandb", reason="the wandb extra is not installed")
     monkeypatch.delenv("WANDB_MODE", raising=False)  # offline is the default, no network needed
     run_dir = _train_with_logger("wandb", tmp_path, tiny_pair)
-    offline = list((run_dir / "wandb").glob("offline-run-*"))
-    assert len(offline) == 1, list((run_dir / "wandb").iterdir())
-    history = list(offline[0].glob("*.wandb"))
-    assert history and b"eval/score_mean" in history[0].read_bytes()  # the logged scalars
+    # two stacked seeds: two W&B runs open in one process, each whole when training returns
+    source, artifact = tiny_pair
+    args = ["train", "hopper-m-r", "--source", source, "--artifact", str(artifact), *TINY]
+    args += ["--seeds", "0-1", "--out", str(tmp_path / "stacked"), "--logger", "wandb", "--json"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    stacked = [Path(record["run_dir"]) for record in json.loads(result.stdout)]
+    for folder in [run_dir, *stacked]:
+        offline = list((folder / "wandb").glob("offline-run-*"))
+        assert len(offline) == 1, list((folder / "wandb").iterdir())
+        history = list(offline[0].glob("*.wandb"))
+        assert history and b"eval/score_mean" in history[0].read_bytes()  # the logged scalars
 
 
 def test_unknown_logger_is_refused_before_any_work(tmp_path, tiny_pair):
