@@ -208,6 +208,9 @@ def test_the_critic_is_checked_against_its_policys_return_in_the_simulator(tmp_p
     assert row["return_policy"] == pytest.approx(float(returns.mean()))
     assert row["q_policy_overestimate"] == pytest.approx(float((q - returns).mean()), rel=1e-5)
     assert row["falls_within_horizon"] == int((steps < 25).sum())
+    # the columns a carried row drops when the check settings change are exactly the check's
+    unchecked = critic_probe.probe(folder, config, sources, states=0)
+    assert set(row) - set(unchecked) == set(critic_probe.POLICY_KEYS)
     assert f"| eta0 | 3 | {row['q_policy']:.1f} |" in critic_probe.table([row])
 
 
@@ -227,9 +230,13 @@ def test_rows_of_runs_whose_checkpoints_are_gone_are_carried_with_their_probe_da
     old["hipode"].update(run=os.path.relpath(now["run"], critic_probe.REPO), q_mean=-1.0)
     old["retrained"]["source_sha256"] = "cd" * 32  # trained on another source since
     old["checked"].update(  # checked at another setting
-        q_policy=1.0, return_policy=2.0, q_policy_overestimate=-1.0, falls_within_horizon=0
+        q_policy=1.0,
+        return_policy=2.0,
+        q_policy_overestimate=-1.0,
+        falls_within_horizon=0,
+        states=6,
+        horizon=25,
     )
-    old["checked"].update(states=6, horizon=25)
     for arm in ("eta0", "lam1", "longer", "retrained", "checked"):
         (root / arm / "td3bc-seed3" / "checkpoint.pt").unlink()  # gone with their machine
     (root / "lam1" / "td3bc-seed3" / "scores.json").unlink()  # no longer finished
