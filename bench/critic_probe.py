@@ -141,7 +141,8 @@ def start_states(data, env_id: str, count: int):
     return np.sort(rng.choice(exact, size=min(count, len(exact)), replace=False))
 
 
-# the columns of the policy-value check, which hold only for its --states and --horizon
+# the columns of the policy-value check, in the order it fills them; they hold only for its
+# --states and --horizon
 POLICY_KEYS = (
     "states",
     "horizon",
@@ -164,14 +165,15 @@ def policy_value_check(model, data, env_id: str, rows, horizon: int, discount: f
     returns, steps = policy_returns(
         env_id, observations, model.act, horizon=horizon, discount=discount
     )
-    return {
-        "states": len(rows),
-        "horizon": horizon,
-        "q_policy": float(q.mean()),
-        "return_policy": float(returns.mean()),
-        "q_policy_overestimate": float((q - returns).mean()),
-        "falls_within_horizon": int((steps < horizon).sum()),
-    }
+    values = (
+        len(rows),
+        horizon,
+        float(q.mean()),
+        float(returns.mean()),
+        float((q - returns).mean()),
+        int((steps < horizon).sum()),
+    )
+    return dict(zip(POLICY_KEYS, values, strict=True))
 
 
 def probe(
