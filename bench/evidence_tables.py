@@ -32,6 +32,7 @@ from typing import Any
 from hipode_pipeline.report import difference_text, interval_text, probability_text, replicates_text
 
 ReportReader = Callable[[Path], dict[str, Any]]  # a report.json's path -> its content
+Budget = Callable[[str, str], int | None]  # (learner, task) -> the campaign's updates per run
 MARKER = re.compile(r"<!-- evidence-rows: (?P<kind>[a-z]+)(?P<params>(?: [a-z]+=[^ ]+)*) -->")
 SEPARATOR = re.compile(r"\|(\s*:?-+:?\s*\|)+")
 REPORT_FILES = {
@@ -303,7 +304,7 @@ def table_rows(
     params: dict[str, str],
     reports: Path,
     runs: Path,
-    steps: dict[str, int],
+    budget: Budget,
     read: ReportReader = read_report,
 ) -> list[str]:
     """The rows a marker asks for (TableError on a marker that names nothing or no rows)."""
@@ -321,10 +322,14 @@ def table_rows(
     where = reports / REPORT_FILES[name]
     try:
         if kind == "runs":
-            if params["learner"] not in steps:
-                raise TableError(f"learner: expected one of {sorted(steps)}")
+            steps = budget(params["learner"], folder_parts(params["folder"])[0])
+            if steps is None:
+                raise TableError(
+                    "learner: expected one the campaign has a budget for, "
+                    f"found {params['learner']!r}"
+                )
             pooled = reports / REPORT_FILES["pooled"]
-            rows = run_rows(runs, pooled, read, params, steps[params["learner"]])
+            rows = run_rows(runs, pooled, read, params, steps)
         elif kind == "authenticity":
             rows = authenticity_rows(runs, read, params)
         else:
@@ -338,7 +343,7 @@ def table_rows(
 
 
 def regenerate(
-    text: str, doc: Path, reports: Path, runs: Path, steps: dict[str, int]
+    text: str, doc: Path, reports: Path, runs: Path, budget: Budget
 ) -> tuple[str, list[tuple[str, list[str], list[str]]]]:
     """The document with every marked table's rows regenerated, and for each table that
     changed: 'doc:line marker', its old rows and its new rows."""
@@ -366,7 +371,7 @@ def regenerate(
             )
         params = dict(part.split("=", 1) for part in match["params"].split())
         try:
-            rows = table_rows(match["kind"], params, reports, runs, steps, read)
+            rows = table_rows(match["kind"], params, reports, runs, budget, read)
         except TableError as error:
             raise TableError(f"{where}: {error}") from None
         start = end = separator + 1

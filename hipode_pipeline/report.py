@@ -14,8 +14,9 @@ whose artifacts were built with several stage-one seeds pool them (group by `aug
 none, hipode or model-rollouts, instead of by artifact); their paired differences pair each run
 with the baseline's run of the same source and training seed, and the bootstrap resamples
 training seeds and stage-one seeds independently (crossed), so the interval covers both sources
-of variance. With `task` among the keys, comparisons are also aggregated over tasks: the mean
-over tasks of each task's mean paired difference, bootstrapped within each task (stratified).
+of variance. A group holds runs of one budget (`steps`). With `task` among the keys,
+comparisons are also aggregated over tasks: the mean over tasks of each task's mean paired
+difference, bootstrapped within each task (stratified).
 
 Run folders are read only (`scores.json`, a finished run's record); scores are D4RL-normalized
 on whatever data the runs used (here: Gymnasium v5 datasets built locally, scored with D4RL's
@@ -212,6 +213,18 @@ def group_runs(runs: list[Run], by: tuple[str, ...]) -> list[Group]:
         group.runs.append(run)
     for group in groups.values():
         group.runs.sort(key=lambda r: (r.seed, str(r.artifact_seed), str(r.replicate[0])))
+        # runs of different budgets are different experiments: pooling them would blur both
+        first, *rest = group.runs
+        other = next((r for r in rest if r.keys.get("steps") != first.keys.get("steps")), None)
+        if other is not None:
+            raise DataFormatError(
+                other.path / "scores.json",
+                "steps",
+                f"{first.keys.get('steps')} updates, the budget of {first.path} in group "
+                f"{group.label} (one budget per group): group by steps too (--by) or pass "
+                "fewer folders",
+                other.keys.get("steps"),
+            )
     return list(groups.values())
 
 

@@ -27,6 +27,11 @@ def test_sweep_runs_go_to_the_sources_folder(monkeypatch):
     assert out == str(Path("bench/evidence/runs/walker2d-m-r-0123abcd"))
     assert command[command.index("--steps") + 1] == "200000"
     assert command[command.index("--learners") + 1] == "iql"
+    # IQL's budget on hopper-m-r is its own; TD3+BC's there is the learner's
+    hopper = evidence.main_parser().parse_args(["sweep", "hopper-m-r", "--learner", "iql"])
+    assert evidence.sweep(hopper)[evidence.sweep(hopper).index("--steps") + 1] == "500000"
+    td3bc = evidence.main_parser().parse_args(["sweep", "hopper-m-r"])
+    assert evidence.sweep(td3bc)[evidence.sweep(td3bc).index("--steps") + 1] == "200000"
     assert "--model-rollouts" in command and "--report-only" not in command
     assert command[command.index("--seeds-per-process") + 1] == "1"
     again = evidence.main_parser().parse_args(["sweep", "walker2d-m-r", "--report-only"])
@@ -69,7 +74,7 @@ REPO = BENCH.parent
 def regenerate(text, reports=evidence.REPORT, runs=evidence.RUNS):
     """evidence_tables.regenerate as `bench/evidence.py tables` calls it: paths as the reports
     name them, relative to the working directory."""
-    return evidence_tables.regenerate(text, Path("doc.md"), reports, runs, evidence.CPU_STEPS)
+    return evidence_tables.regenerate(text, Path("doc.md"), reports, runs, evidence.budget)
 
 
 def test_the_docs_tables_are_the_reports_and_runs_of_the_checkout(monkeypatch):
@@ -254,7 +259,8 @@ def test_authenticity_rows_put_the_source_beside_each_artifact_and_its_check(tmp
         ("<!-- evidence-rows: groups report=pooled learner=sac -->", "no rows for"),
         ("<!-- evidence-rows: runs folder=ant-m-r-00000000 learner=iql -->", "to exist"),
         ("<!-- evidence-rows: runs folder=hopper-m-r learner=iql -->", "<task>-<first 8"),
-        ("<!-- evidence-rows: runs folder=hopper-m-r-f1a408d8 learner=iql -->", "no rows for"),
+        ("<!-- evidence-rows: runs folder=hopper-m-r-7c80ddd9 learner=iql -->", "no rows for"),
+        ("<!-- evidence-rows: runs folder=hopper-m-r-7c80ddd9 learner=sac -->", "a budget for"),
         ("<!-- evidence-rows: groups report = pooled -->", "malformed marker"),
     ],
 )

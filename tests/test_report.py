@@ -39,6 +39,7 @@ def write_run(
     task="hopper-m-r",
     artifact_seed=0,
     method: str | None = None,
+    steps: int | None = None,
 ):
     folder.mkdir(parents=True)
     evaluations = [{"step": 100 * (i + 1), "score_mean": s} for i, s in enumerate(scores)]
@@ -55,6 +56,7 @@ def write_run(
                 "eta": 0.5,
                 "evaluations": evaluations,
                 "data_identity": identity,
+                **({} if steps is None else {"steps": steps}),
             }
         )
     )
@@ -140,6 +142,22 @@ def test_same_seed_twice_in_a_group_is_refused(tmp_path, two_arms):
     write_run(two_arms / "again", data="source", seed=1, scores=[1.0])
     with pytest.raises(DataFormatError, match="one run per seed"):
         build_report(find_runs([two_arms]))
+
+
+def test_runs_of_different_budgets_are_not_pooled(two_arms):
+    for folder in two_arms.iterdir():
+        record = json.loads((folder / "scores.json").read_text())
+        (folder / "scores.json").write_text(json.dumps({**record, "steps": 300}))
+    assert len(build_report(find_runs([two_arms]), k=2, reps=200)["groups"]) == 2
+    write_run(two_arms / "longer", data="source", seed=7, scores=[1.0, 2.0], steps=500)
+    with pytest.raises(DataFormatError, match=r"longer/scores.json: field 'steps'.*found 500"):
+        build_report(find_runs([two_arms]), k=2, reps=200)
+    by_budget = build_report(find_runs([two_arms]), by=("data", "steps"), k=2, reps=200)
+    assert sorted((g["data"], g["n_runs"]) for g in by_budget["groups"]) == [
+        ("merged", 4),
+        ("source", 1),
+        ("source", 4),
+    ]
 
 
 POOLED = ("task", "learner", "augmentation")
