@@ -154,7 +154,7 @@ def across_rows(report: dict[str, Any], report_name: str, params: dict[str, str]
 
 
 def run_rows(
-    runs: Path, pooled: Path, read: ReportReader, params: dict[str, str], steps: int
+    runs: Path, pooled: Path, read: ReportReader, params: dict[str, str], budget: Budget
 ) -> list[str]:
     """One row per arm folder: each finished run's last eval / last k / curve mean, and speed.
     `runs` is the runs folder as the reports name it (relative to the working directory)."""
@@ -166,6 +166,9 @@ def run_rows(
     task, _ = folder_parts(params["folder"])
     if not (folder / task).is_dir():
         raise TableError(f"folder={params['folder']}: expected {folder / task} to exist")
+    steps = budget(learner, task)
+    if steps is None:
+        raise TableError(f"learner: expected one the campaign has a budget for, found {learner!r}")
     # the run folders the pooled report holds, as it names them (relative to the checkout)
     in_report = {run for group in read(pooled)["groups"] for run in group["runs"]}
     rows, unreported = [], []
@@ -322,14 +325,7 @@ def table_rows(
     where = reports / REPORT_FILES[name]
     try:
         if kind == "runs":
-            steps = budget(params["learner"], folder_parts(params["folder"])[0])
-            if steps is None:
-                raise TableError(
-                    "learner: expected one the campaign has a budget for, "
-                    f"found {params['learner']!r}"
-                )
-            pooled = reports / REPORT_FILES["pooled"]
-            rows = run_rows(runs, pooled, read, params, steps)
+            rows = run_rows(runs, reports / REPORT_FILES["pooled"], read, params, budget)
         elif kind == "authenticity":
             rows = authenticity_rows(runs, read, params)
         else:

@@ -28,10 +28,9 @@ def test_sweep_runs_go_to_the_sources_folder(monkeypatch):
     assert command[command.index("--steps") + 1] == "200000"
     assert command[command.index("--learners") + 1] == "iql"
     # IQL's budget on hopper-m-r is its own; TD3+BC's there is the learner's
-    hopper = evidence.main_parser().parse_args(["sweep", "hopper-m-r", "--learner", "iql"])
-    assert evidence.sweep(hopper)[evidence.sweep(hopper).index("--steps") + 1] == "500000"
-    td3bc = evidence.main_parser().parse_args(["sweep", "hopper-m-r"])
-    assert evidence.sweep(td3bc)[evidence.sweep(td3bc).index("--steps") + 1] == "200000"
+    for argv, steps in ((["--learner", "iql"], "500000"), ([], "200000")):
+        hopper = evidence.sweep(evidence.main_parser().parse_args(["sweep", "hopper-m-r", *argv]))
+        assert hopper[hopper.index("--steps") + 1] == steps
     assert "--model-rollouts" in command and "--report-only" not in command
     assert command[command.index("--seeds-per-process") + 1] == "1"
     again = evidence.main_parser().parse_args(["sweep", "walker2d-m-r", "--report-only"])
