@@ -108,8 +108,18 @@ def test_sweep_runs_both_arms_reports_and_resumes(tmp_path, dataset_root):
     assert "| hopper-m-r | hipode |" in markdown
     assert f"| hopper-m-r | lam1 | {stats['rows']:,} | {stats['reward_mean']:.3f} |" in markdown
 
-    again = json.loads(invoke(tmp_path, source, "--steps", "20").stdout)
+    fewer_arms = invoke(tmp_path, source, "--steps", "20")
+    again = json.loads(fewer_arms.stdout)
     assert [r["status"] for r in again["runs"]] == ["finished earlier"] * 2
+    # the arms it did not plan are named where a person reads, not silently dropped
+    unplanned = ["hopper-m-r td3bc " + arm for arm in ("artifact-seed3", "lam1", "mixing-union")]
+    assert again["unplanned_arms"] == unplanned
+    assert ", ".join(unplanned) in " ".join(fewer_arms.stderr.split())
+    assert (
+        "Not in this report: the runs in this folder of arms this sweep did not plan ("
+        + (", ".join(unplanned))
+        in (results / "quality.md").read_text()
+    )
     assert [r["final_score"] for r in again["runs"]] == [
         runs[a]["final_score"] for a in ("eta0", "hipode")
     ]

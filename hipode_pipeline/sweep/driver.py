@@ -18,7 +18,13 @@ from hipode_pipeline.errors import HipodeError, SettingError
 from hipode_pipeline.files import display_path, write_json_atomic, write_text_atomic
 from hipode_pipeline.machine import LoadSampler, utc_now
 from hipode_pipeline.paths import use_datasets_root
-from hipode_pipeline.sweep.engines import read_earlier, read_finished, run_local, run_ray
+from hipode_pipeline.sweep.engines import (
+    read_earlier,
+    read_finished,
+    run_local,
+    run_ray,
+    unplanned_arms,
+)
 from hipode_pipeline.sweep.plan import (
     ENGINES,
     SweepConfig,
@@ -172,6 +178,14 @@ def run_sweep(config: SweepConfig) -> QualityReport:
     runs += earlier
     if not runs:
         raise HipodeError(f"{config.out}: no finished runs at {steps} steps to report")
+    unplanned = unplanned_arms(specs)
+    if unplanned:
+        console.err.print(
+            "[yellow]note:[/] runs of arms this sweep did not plan are left out of its report: "
+            + ", ".join(unplanned)
+            + "; the flags that plan them (--artifact-seeds, --model-rollouts, ...) with "
+            "--report-only report the whole folder"
+        )
     report = QualityReport(
         command=command_line(config),
         budget={
@@ -203,6 +217,7 @@ def run_sweep(config: SweepConfig) -> QualityReport:
         seconds=time.perf_counter() - clock,
         note=config.note,
         synthetic_seen=synthetic_seen(previous, arms),
+        unplanned_arms=unplanned,
     )
     results = results_dir(config)
     results.mkdir(parents=True, exist_ok=True)

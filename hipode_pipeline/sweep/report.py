@@ -48,6 +48,7 @@ class QualityReport:
     # task -> artifact checksum -> synthetic-data row: this report's and the earlier reports'
     synthetic_seen: SyntheticRows = field(default_factory=dict)
     note: str = ""  # the --note text
+    unplanned_arms: list[str] = field(default_factory=list)  # "<task> <learner> <arm>" left out
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -278,6 +279,16 @@ def markdown(report: QualityReport) -> str:
         + ". The result of a run is its last evaluation (D4RL-normalized score), never the "
         "best one.",
         "",
+        *(
+            [
+                "Not in this report: the runs in this folder of arms this sweep did not plan ("
+                + ", ".join(report.unplanned_arms)
+                + "); a sweep with the flags that plan them and --report-only covers the folder.",
+                "",
+            ]
+            if report.unplanned_arms
+            else []
+        ),
         f"Machine: {machine['platform']}, {machine['cpu_count']} cores, torch "
         f"{machine['torch']}, device {machine['device']}, engine {machine['engine']} with "
         f"{machine['workers']} parallel process(es) of {machine['threads']} torch thread(s)"
