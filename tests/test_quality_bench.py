@@ -115,11 +115,8 @@ def test_sweep_runs_both_arms_reports_and_resumes(tmp_path, dataset_root):
     unplanned = ["hopper-m-r td3bc " + arm for arm in ("artifact-seed3", "lam1", "mixing-union")]
     assert again["unplanned_arms"] == unplanned
     assert ", ".join(unplanned) in " ".join(fewer_arms.stderr.split())
-    assert (
-        "Not in this report: the runs in this folder of arms this sweep did not plan ("
-        + (", ".join(unplanned))
-        in (results / "quality.md").read_text()
-    )
+    named = "Not in this report: the runs in this folder of arms this sweep did not plan ("
+    assert named + ", ".join(unplanned) + ")" in (results / "quality.md").read_text()
     assert [r["final_score"] for r in again["runs"]] == [
         runs[a]["final_score"] for a in ("eta0", "hipode")
     ]

@@ -36,7 +36,13 @@ from hipode_pipeline.sweep.plan import (
     run_units,
     synthetic_seen,
 )
-from hipode_pipeline.sweep.report import QualityReport, curve_plot, markdown, summarize
+from hipode_pipeline.sweep.report import (
+    QualityReport,
+    curve_plot,
+    markdown,
+    summarize,
+    unplanned_text,
+)
 from hipode_pipeline.sweep.worker import FINISHED_EARLIER, finished_scores
 
 
@@ -180,12 +186,7 @@ def run_sweep(config: SweepConfig) -> QualityReport:
         raise HipodeError(f"{config.out}: no finished runs at {steps} steps to report")
     unplanned = unplanned_arms(specs)
     if unplanned:
-        console.err.print(
-            "[yellow]note:[/] runs of arms this sweep did not plan are left out of its report: "
-            + ", ".join(unplanned)
-            + "; the flags that plan them (--artifact-seeds, --model-rollouts, ...) with "
-            "--report-only report the whole folder"
-        )
+        console.err.print(f"[yellow]note:[/] {unplanned_text(unplanned)}")
     report = QualityReport(
         command=command_line(config),
         budget={

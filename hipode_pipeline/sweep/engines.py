@@ -97,21 +97,18 @@ def read_earlier(specs: list[RunSpec], asked: set[int]) -> Iterator[dict[str, An
 def unplanned_arms(specs: list[RunSpec]) -> list[str]:
     """The arm folders of the sweep's folder that hold runs of a planned task and learner but
     that this invocation did not plan (a `--artifact-seeds ""` sweep beside an earlier
-    `--artifact-seeds 1` one): its report cannot cover them, so it names them."""
+    `--artifact-seeds 1` one): its report cannot describe their arms, so it names them."""
     planned = {(spec.out_dir, spec.task, spec.learner, spec.arm) for spec in specs}
     left_out = []
     for out_dir, task, learner in sorted({(s.out_dir, s.task, s.learner) for s in specs}):
         folder = Path(out_dir) / task
-        arms = (
-            sorted(path.name for path in folder.iterdir() if path.is_dir())
-            if folder.is_dir()
-            else []
-        )
-        for arm in arms:
-            if (out_dir, task, learner, arm) not in planned and recorded_seeds(
-                out_dir, task, arm, learner
-            ):
-                left_out.append(f"{task} {learner} {arm}")
+        arms = sorted(path.name for path in folder.iterdir()) if folder.is_dir() else []
+        left_out += [
+            f"{task} {learner} {arm}"
+            for arm in arms
+            if (out_dir, task, learner, arm) not in planned
+            and recorded_seeds(out_dir, task, arm, learner)  # only folders, and of this learner
+        ]
     return left_out
 
 

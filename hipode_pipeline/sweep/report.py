@@ -248,6 +248,16 @@ def together(machine: dict[str, Any]) -> str:
     return "one seed" if per_process == 1 else f"up to {per_process} seeds of an arm"
 
 
+def unplanned_text(unplanned: list[str]) -> str:
+    """What the report and the console say of the folder's arms the sweep did not plan."""
+    return (
+        "Not in this report: the runs in this folder of arms this sweep did not plan ("
+        + ", ".join(unplanned)
+        + "); a sweep with the flags that plan them (--artifact-seeds, --model-rollouts, ...) "
+        "and --report-only covers the folder."
+    )
+
+
 def markdown(report: QualityReport) -> str:
     """quality.md: command, budget, machine and load, the table, the curves."""
     budget, machine = report.budget, report.machine
@@ -279,16 +289,7 @@ def markdown(report: QualityReport) -> str:
         + ". The result of a run is its last evaluation (D4RL-normalized score), never the "
         "best one.",
         "",
-        *(
-            [
-                "Not in this report: the runs in this folder of arms this sweep did not plan ("
-                + ", ".join(report.unplanned_arms)
-                + "); a sweep with the flags that plan them and --report-only covers the folder.",
-                "",
-            ]
-            if report.unplanned_arms
-            else []
-        ),
+        *([unplanned_text(report.unplanned_arms), ""] if report.unplanned_arms else []),
         f"Machine: {machine['platform']}, {machine['cpu_count']} cores, torch "
         f"{machine['torch']}, device {machine['device']}, engine {machine['engine']} with "
         f"{machine['workers']} parallel process(es) of {machine['threads']} torch thread(s)"
