@@ -21,6 +21,7 @@ import re
 import socket
 import stat
 import tempfile
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -36,6 +37,8 @@ TEMP_NAME = re.compile(r"\.(?P<stem>.*)\.p(?P<pid>\d+)@(?P<host>[\w-]*)\.[^.]+\.
 TEMP_STEM_LIMIT = 120
 # link(2) fails with these where the file system has no hard links (FAT, some FUSE mounts)
 NO_HARD_LINKS = {errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EMLINK, errno.ENOSYS}
+# a waiter reads the lock holder's "<pid> <command>" record at most this many times, 10 ms apart
+HOLDER_RECORD_POLLS = 50
 
 
 def _host() -> str:
@@ -196,7 +199,13 @@ def _acquire(lock: Path, path: Path) -> tuple[int | None, bool]:
 def _say_waiting(fd: int, path: Path) -> None:
     from hipode_pipeline import console
 
-    words = os.pread(fd, 200, 0).decode(errors="replace").split(maxsplit=1)
+    # the holder writes its record just after it takes the lock: give it that moment
+    for _ in range(HOLDER_RECORD_POLLS):
+        record = os.pread(fd, 200, 0).decode(errors="replace")
+        if record.endswith("\n"):
+            break
+        time.sleep(0.01)
+    words = record.split(maxsplit=1)
     pid = words[0] if words and words[0].isdigit() else "?"
     command = words[1].strip() if len(words) > 1 else "hipode"
     console.err.print(console.plain(f"waiting for another `{command}` writing {path} (pid {pid})…"))

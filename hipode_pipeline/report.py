@@ -16,7 +16,9 @@ with the baseline's run of the same source and training seed, and the bootstrap 
 training seeds and stage-one seeds independently (crossed), so the interval covers both sources
 of variance. A group holds runs of one budget (`steps`). With `task` among the keys,
 comparisons are also aggregated over tasks: the mean over tasks of each task's mean paired
-difference, bootstrapped within each task (stratified).
+difference, bootstrapped within each task (stratified). One run, or one pair, has no spread to
+resample: such a statistic is reported without an interval, and so is a mean over tasks where
+any task lacks one.
 
 Run folders are read only (`scores.json`, a finished run's record); scores are D4RL-normalized
 on whatever data the runs used (here: Gymnasium v5 datasets built locally, scored with D4RL's
@@ -46,6 +48,9 @@ MEASURE_TEXT = {
     "curve_mean": "mean over all evaluations",
 }
 DEFAULT_BY = ("task", "learner", "data")
+# a bootstrap over one value returns that value as both bounds: no interval at all
+MIN_FOR_INTERVAL = 2
+NO_INTERVAL = "no interval"
 OUTPUTS = (
     "report.json",
     "report.md",
@@ -266,21 +271,27 @@ def interval_estimates(values: np.ndarray, reps: int, seed: int) -> dict[str, An
     def aggregates(x: np.ndarray) -> np.ndarray:
         return np.array([metrics.aggregate_iqm(x), metrics.aggregate_mean(x)])
 
-    point, interval = _bootstrap(scores, aggregates, reps, seed)
+    if len(scores) < MIN_FOR_INTERVAL:
+        point, interval = aggregates(scores), None
+    else:
+        point, interval = _bootstrap(scores, aggregates, reps, seed)
     return {
         "iqm": float(point[0]),
-        "iqm_ci": [float(interval[0, 0]), float(interval[1, 0])],
+        "iqm_ci": None if interval is None else [float(interval[0, 0]), float(interval[1, 0])],
         "mean": float(point[1]),
-        "mean_ci": [float(interval[0, 1]), float(interval[1, 1])],
+        "mean_ci": None if interval is None else [float(interval[0, 1]), float(interval[1, 1])],
         "std": float(scores.std(ddof=1)) if len(scores) > 1 else 0.0,
         "n": int(len(scores)),
     }
 
 
 def improvement(x: np.ndarray, y: np.ndarray, reps: int, seed: int) -> dict[str, Any]:
-    """P(X > Y) over the two arms' seeds with its bootstrap CI (rliable)."""
+    """P(X > Y) over the two arms' seeds with its bootstrap CI (rliable); no CI where an arm
+    has a single run."""
     _, metrics = _rliable()
     pair = (np.reshape(x, (-1, 1)), np.reshape(y, (-1, 1)))
+    if min(len(pair[0]), len(pair[1])) < MIN_FOR_INTERVAL:
+        return {"probability": float(metrics.probability_of_improvement(*pair)), "ci": None}
     point, interval = _bootstrap(pair, metrics.probability_of_improvement, reps, seed)
     return {"probability": float(point), "ci": [float(interval[0, 0]), float(interval[1, 0])]}
 
@@ -322,14 +333,17 @@ def crossed_bootstrap(cells: dict[tuple, float], reps: int, seed: int) -> np.nda
 
 
 def paired_difference(cells: dict[tuple, float], reps: int, seed: int) -> dict[str, Any] | None:
-    """Mean over the paired replicates of arm - baseline, with a crossed bootstrap 95 % CI."""
+    """Mean over the paired replicates of arm - baseline, with a crossed bootstrap 95 % CI
+    (none from a single pair)."""
     if not cells:
         return None
     diffs = np.array(list(cells.values()))
-    means = crossed_bootstrap(cells, reps, seed)
+    means = crossed_bootstrap(cells, reps, seed) if len(cells) >= MIN_FOR_INTERVAL else None
     return {
         "mean": float(diffs.mean()),
-        "ci": [float(np.quantile(means, 0.025)), float(np.quantile(means, 0.975))],
+        "ci": None
+        if means is None
+        else [float(np.quantile(means, 0.025)), float(np.quantile(means, 0.975))],
         "seeds": sorted({key[2] for key in cells}),
         "artifact_seeds": sorted({key[1] for key in cells if key[1] is not None}),
         "pairs": len(cells),
@@ -340,7 +354,8 @@ def paired_difference(cells: dict[tuple, float], reps: int, seed: int) -> dict[s
 
 def aggregate_over_tasks(comparisons: list[dict[str, Any]], by: tuple[str, ...]) -> list[dict]:
     """Per arm key without the task: the mean over tasks of each task's mean paired difference,
-    with a 95 % CI from the tasks' bootstraps combined resample by resample (stratified by task)."""
+    with a 95 % CI from the tasks' bootstraps combined resample by resample (stratified by task);
+    no CI where a task has none."""
     if "task" not in by:
         return []
     merged: dict[tuple, list[dict[str, Any]]] = {}
@@ -359,11 +374,14 @@ def aggregate_over_tasks(comparisons: list[dict[str, Any]], by: tuple[str, ...])
             diffs = [entry["measures"][name]["paired_difference"] for entry in entries]
             if any(d is None for d in diffs):
                 continue
-            size = min(len(d["_means"]) for d in diffs)
-            means = np.mean([d["_means"][:size] for d in diffs], axis=0)
+            ci = None
+            if all(d["_means"] is not None for d in diffs):
+                size = min(len(d["_means"]) for d in diffs)
+                means = np.mean([d["_means"][:size] for d in diffs], axis=0)
+                ci = [float(np.quantile(means, 0.025)), float(np.quantile(means, 0.975))]
             row["measures"][name] = {
                 "mean": float(np.mean([d["mean"] for d in diffs])),
-                "ci": [float(np.quantile(means, 0.025)), float(np.quantile(means, 0.975))],
+                "ci": ci,
                 "pairs": int(sum(d["pairs"] for d in diffs)),
             }
         rows.append(row)
@@ -496,19 +514,29 @@ def mean_curve(runs: list[Run], reps: int, seed: int) -> dict[str, list]:
 
 
 def interval_text(m: dict[str, Any], name: str) -> str:
-    """A group measure's statistic with its interval: '35.9 [28.7, 42.4]'."""
+    """A group measure's statistic with its interval: '35.9 [28.7, 42.4]'; '45.5 (no interval)'
+    from one run."""
+    if m[f"{name}_ci"] is None:
+        return f"{m[name]:.1f} ({NO_INTERVAL})"
     low, high = m[f"{name}_ci"]
     return f"{m[name]:.1f} [{low:.1f}, {high:.1f}]"
 
 
 def difference_text(d: dict[str, Any] | None) -> str:
     """A (paired or across-task) mean difference with its interval: '-16.2 [-22.9, -9.1]';
-    '-' where there is none (no pairs)."""
-    return "-" if d is None else f"{d['mean']:+.1f} [{d['ci'][0]:+.1f}, {d['ci'][1]:+.1f}]"
+    '+2.7 (no interval)' from one pair; '-' where there is none (no pairs)."""
+    if d is None:
+        return "-"
+    if d["ci"] is None:
+        return f"{d['mean']:+.1f} ({NO_INTERVAL})"
+    return f"{d['mean']:+.1f} [{d['ci'][0]:+.1f}, {d['ci'][1]:+.1f}]"
 
 
 def probability_text(p: dict[str, Any]) -> str:
-    """P(improvement) with its interval: '0.02 [0.00, 0.12]'."""
+    """P(improvement) with its interval: '0.02 [0.00, 0.12]'; '1.00 (no interval)' where an arm
+    has one run."""
+    if p["ci"] is None:
+        return f"{p['probability']:.2f} ({NO_INTERVAL})"
     return f"{p['probability']:.2f} [{p['ci'][0]:.2f}, {p['ci'][1]:.2f}]"
 
 
@@ -618,7 +646,8 @@ def csv_text(report: dict[str, Any]) -> str:
             m = group["measures"][name]
             writer.writerow(
                 [group[k] for k in by]
-                + [name, m["n"], m["iqm"], *m["iqm_ci"], m["mean"], *m["mean_ci"]]
+                + [name, m["n"], m["iqm"], *(m["iqm_ci"] or ["", ""])]
+                + [m["mean"], *(m["mean_ci"] or ["", ""])]
             )
     return out.getvalue()
 
@@ -637,7 +666,7 @@ def latex(report: dict[str, Any]) -> str:
         cells = [_tex(_shown(group[k])) for k in by]
         for name in MEASURES:
             m = group["measures"][name]
-            cells.append(f"{m['iqm']:.1f} [{m['iqm_ci'][0]:.1f}, {m['iqm_ci'][1]:.1f}]")
+            cells.append(_tex(interval_text(m, "iqm")))
         lines.append(" & ".join(cells) + " \\\\")
     lines += ["\\bottomrule", "\\end{tabular}"]
     return "\n".join(lines) + "\n"
@@ -725,6 +754,7 @@ class DifferencePoint:
     high: float
     pairs: int
     across_tasks: bool
+    has_interval: bool
 
 
 def across_key(entry: dict[str, Any]) -> dict[str, str]:
@@ -760,9 +790,11 @@ def difference_points(report: dict[str, Any]) -> list[DifferencePoint]:
         for name in MEASURES:
             d = differences.get(name)
             if d:
-                low, high = d["ci"]
+                low, high = d["ci"] or (d["mean"], d["mean"])
                 points.append(
-                    DifferencePoint(label, name, d["mean"], low, high, d["pairs"], across)
+                    DifferencePoint(
+                        label, name, d["mean"], low, high, d["pairs"], across, d["ci"] is not None
+                    )
                 )
     return points
 
@@ -770,7 +802,8 @@ def difference_points(report: dict[str, Any]) -> list[DifferencePoint]:
 def plot_differences(report: dict[str, Any], path: Path) -> None:
     """Paired difference (arm − baseline) with its 95 % CI, a row per arm and task and one per
     arm over tasks, a panel per measure, a line at zero: the comparisons at a glance, as PNG.
-    A difference of one pair has no interval: its marker is hollow."""
+    A difference without an interval (one pair, or a mean over tasks where a task has one) is a
+    hollow marker."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -797,7 +830,7 @@ def plot_differences(report: dict[str, Any], path: Path) -> None:
                 xerr=[[max(0.0, point.mean - point.low)], [max(0.0, point.high - point.mean)]],
                 fmt="D" if point.across_tasks else "o",
                 color=color,
-                markerfacecolor=color if point.pairs > 1 else "none",
+                markerfacecolor=color if point.has_interval else "none",
                 capsize=2,
                 markersize=4,
             )
@@ -811,7 +844,7 @@ def plot_differences(report: dict[str, Any], path: Path) -> None:
     axes[0][0].invert_yaxis()
     figure.suptitle(
         f"arm − {report['compare']}: mean with 95% CI (dots: per task; diamonds: mean over "
-        "tasks; hollow: one pair, no interval)",
+        "tasks; hollow: no interval, from one pair)",
         fontsize=9,
     )
     figure.tight_layout()

@@ -115,6 +115,10 @@ class TransitionChecks:
         }
 
 
+# the artifact's rows in tables and plots; any other recorded method shows as "artifact"
+METHOD_LABELS = {"hipode": "HIPODE", "model-rollouts": "model-rollout artifact"}
+
+
 @dataclass(eq=False)
 class VerifyReport:
     """What `hipode verify` found: HIPODE's sample and the plain-rollout baseline side by side."""
@@ -134,10 +138,17 @@ class VerifyReport:
     analysis: dict[str, Any] | None = None
     json_path: str | None = None  # where the report was written
     png_path: str | None = None  # where the plot was written
+    method: str = "hipode"  # how the artifact was made (its manifest's hyper_parameters.method)
+
+    @property
+    def artifact_label(self) -> str:
+        """The artifact's rows are named by how it was made: a model-rollout artifact is no
+        HIPODE sample."""
+        return METHOD_LABELS.get(self.method, "artifact")
 
     def rows(self) -> list[list[Any]]:
-        """Table rows: HIPODE, then the baseline."""
-        rows = [_table_row("HIPODE", self.hipode.summary())]
+        """Table rows: the artifact's sample, then the baseline."""
+        rows = [_table_row(self.artifact_label, self.hipode.summary())]
         if self.baseline is not None:
             rows.append(_table_row("plain model rollout", self.baseline.summary()))
         return rows
@@ -151,6 +162,7 @@ class VerifyReport:
             "source_sha256": self.source_sha256,
             "seed": self.seed,
             "tolerance": self.tolerance,
+            "method": self.method,
             "definitions": {
                 "next_state_error": "mean over dims of |s'_synthetic - s'_simulator| / "
                 "source next-state std",
@@ -482,6 +494,7 @@ def verify_artifact(
     source_id = _manifest_value(path, manifest, "source.id", str)
     source_sha256 = _manifest_value(path, manifest, "source.sha256", str)
     eps = _normalizer_eps(path, manifest)
+    method = _artifact_method(manifest)
     if baseline:
         _manifest_value(path, manifest, "hyper_parameters.generator_config", dict)
         _manifest_value(path, manifest, "seeds.generator_training", int)
@@ -526,7 +539,11 @@ def verify_artifact(
     with console.progress(disable=not show_progress) as prog:
         clock = time.perf_counter()
         hipode_checks = check_transitions(
-            env_id, synthetic, progress=prog, label="simulate HIPODE", **common
+            env_id,
+            synthetic,
+            progress=prog,
+            label=f"simulate {METHOD_LABELS.get(method, 'artifact')}",
+            **common,
         )
         hipode_checks = dataclasses.replace(hipode_checks, rows=picked)
         seconds["simulate_hipode"] = time.perf_counter() - clock
@@ -593,6 +610,7 @@ def verify_artifact(
         analysis=analysis,
         json_path=str(json_path),
         png_path=str(png_path),
+        method=method,
     )
     clock = time.perf_counter()
     json_path.parent.mkdir(parents=True, exist_ok=True)
@@ -602,6 +620,13 @@ def verify_artifact(
     report.seconds = {name: round(value, 3) for name, value in seconds.items()}
     _write_json_atomic(json_path, report.to_dict())
     return report
+
+
+def _artifact_method(manifest: dict[str, Any]) -> str:
+    """How the artifact was made; files from before methods were recorded are HIPODE's."""
+    params = manifest.get("hyper_parameters")
+    method = params.get("method", "hipode") if isinstance(params, dict) else "hipode"
+    return method if isinstance(method, str) else repr(method)
 
 
 def _normalizer_eps(path: Path, manifest: dict[str, Any]) -> float:
@@ -630,7 +655,7 @@ def plot_novelty_vs_error(report: VerifyReport, path: Path) -> None:
     figure, axes = plt.subplots(figsize=(6.4, 4.8), dpi=120)
     # log scale: errors span decades, and an exact transition would sit at -inf
     floor = 1e-6
-    series = [("HIPODE", report.hipode, "tab:blue")]
+    series = [(report.artifact_label, report.hipode, "tab:blue")]
     if report.baseline is not None:
         series.append(("plain model rollout", report.baseline, "tab:orange"))
     for label, checks, color in series:

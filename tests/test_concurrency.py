@@ -8,6 +8,8 @@ import os
 import signal
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -269,3 +271,24 @@ def test_two_identical_trains_write_one_run(tmp_path, dataset_root):
     assert sorted(s["finished_earlier"] for s in scores) == [False, True]
     lines = (Path(scores[0]["run_dir"]) / "metrics.jsonl").read_text().splitlines()
     assert [json.loads(line)["step"] for line in lines] == [20, 40]
+
+
+def test_a_waiter_names_a_holder_that_writes_its_record_late(tmp_path, capsys):
+    target = tmp_path / "x.hdf5"
+    lock = files.lock_path(target)
+    lock.touch()
+    fd = os.open(lock, os.O_RDWR)
+
+    def holder_writes_record():  # a holder takes the lock, then writes who it is
+        time.sleep(0.05)
+        os.pwrite(fd, b"4242 hipode augment\n", 0)
+
+    writer = threading.Thread(target=holder_writes_record)
+    writer.start()
+    try:
+        files._say_waiting(fd, target)
+    finally:
+        writer.join()
+        os.close(fd)
+    said = capsys.readouterr().err
+    assert "waiting for another `hipode augment`" in said and "(pid 4242)" in said

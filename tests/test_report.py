@@ -252,6 +252,53 @@ def test_comparisons_are_aggregated_over_tasks(tmp_path):
     assert (tmp_path / "curves.png").read_bytes()[:4] == b"\x89PNG"
 
 
+def test_one_run_or_one_pair_is_reported_without_an_interval(tmp_path):
+    runs = tmp_path / "runs"
+    write_two_tasks(runs, {"hopper-m-r": 5.0, "walker2d-m-r": -15.0}, noise=2.0)
+    # rollouts: one run per task, so one pair per task, and a mean over two single pairs
+    for task, final in (("hopper-m-r", 22.0), ("walker2d-m-r", 17.0)):
+        write_run(
+            runs / task / "r0",
+            data="merged",
+            seed=0,
+            scores=[final],
+            task=task,
+            method="model-rollouts",
+        )
+    report = build_report(find_runs([runs]), by=POOLED, compare=("augmentation", "none"), reps=500)
+    groups = {(g["task"], g["augmentation"]): g["measures"]["last"] for g in report["groups"]}
+    single, pooled = groups["hopper-m-r", "model-rollouts"], groups["hopper-m-r", "hipode"]
+    assert single["n"] == 1 and single["iqm"] == single["mean"] == pytest.approx(22.0)
+    assert single["iqm_ci"] is None and single["mean_ci"] is None
+    assert pooled["mean_ci"][0] < pooled["mean"] < pooled["mean_ci"][1]
+    entries = {
+        (e["key"]["task"], e["key"]["augmentation"]): e["measures"]["last"]
+        for e in report["comparisons"]
+    }
+    hopper = entries["hopper-m-r", "model-rollouts"]
+    assert hopper["paired_difference"]["mean"] == pytest.approx(2.0)
+    assert hopper["paired_difference"]["pairs"] == 1 and hopper["paired_difference"]["ci"] is None
+    assert hopper["probability_of_improvement"] == {"probability": pytest.approx(1 / 3), "ci": None}
+    across = {e["key"]["augmentation"]: e["measures"]["last"] for e in report["across_tasks"]}
+    assert across["model-rollouts"]["mean"] == pytest.approx((2.0 - 3.0) / 2)
+    assert across["model-rollouts"]["ci"] is None and across["hipode"]["ci"] is not None
+    text = report_markdown(report)
+    assert "22.0 (no interval)" in text and "+2.0 (no interval)" in text
+    assert "-0.5 (no interval)" in text and "0.33 (no interval)" in text
+    assert "[22.0, 22.0]" not in text and "[+2.0, +2.0]" not in text
+    points = {p.label: p for p in difference_points(report) if p.measure == "last"}
+    rollouts = points["mean of 2 tasks · td3bc · model-rollouts"]
+    assert not rollouts.has_interval and rollouts.low == rollouts.high == rollouts.mean
+    assert points["mean of 2 tasks · td3bc · hipode"].has_interval
+    paths = write_report(report, tmp_path / "report")
+    assert paths["differences.png"].read_bytes()[:4] == b"\x89PNG"
+    csv_rows = paths["report.csv"].read_text().splitlines()
+    assert any(
+        row.startswith("hopper-m-r,td3bc,model-rollouts,last,1,22.0,,,22.0,,") for row in csv_rows
+    )
+    assert "22.0 (no interval)" in paths["report.tex"].read_text()
+
+
 def test_differences_plot_shows_every_paired_difference_and_each_mean_over_tasks(tmp_path):
     runs = tmp_path / "runs"
     # per-seed noise: a real interval

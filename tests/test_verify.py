@@ -317,3 +317,32 @@ def test_cli_refuses_two_artifacts_of_one_name_into_one_folder(tiny_artifact, tm
     apart = CliRunner().invoke(cli_app(), args)  # each beside its own artifact
     assert apart.exit_code == 0, apart.output
     assert all(Path(t + ".verify.json").is_file() for t in twins)
+
+
+def test_a_model_rollout_artifact_is_named_as_such(tiny_artifact, tmp_path, monkeypatch):
+    root, _ = tiny_artifact
+    with monkeypatch.context() as patch:
+        patch.setenv("MINARI_DATASETS_PATH", str(root))
+        rollouts = run_augment(
+            "hopper-m-r",
+            source="local/hopper/tiny-real-v0",
+            profile="quick",
+            method="model-rollouts",
+            out=tmp_path / "rollouts.hdf5",
+            root=root,
+            show_progress=False,
+        )
+    monkeypatch.setattr(console.out, "width", 250)
+    args = ["verify", rollouts.artifact, "--sample", "16", "--no-baseline", "--root", str(root)]
+    table = CliRunner().invoke(cli_app(), [*args, "--out-dir", str(tmp_path / "a")])
+    assert table.exit_code == 0, table.output
+    assert "model-rollout artifact" in table.stdout and "HIPODE" not in table.stdout
+    written = json.loads((tmp_path / "a" / "rollouts.hdf5.verify.json").read_text())
+    assert written["method"] == "model-rollouts"
+
+
+def test_every_method_an_artifact_can_record_has_a_label():
+    from hipode_pipeline.contract import METHODS
+    from hipode_pipeline.verify import METHOD_LABELS
+
+    assert set(METHOD_LABELS) == set(METHODS)
