@@ -166,3 +166,29 @@ def test_local_worker_processes_each_train_a_unit(tmp_path, tiny):
     # one spawned process per unit: both seeds of an arm in the same one, not in this process
     pids = [{r["worker_pid"] for r in result["runs"] if r["arm"] == arm} for arm in ARMS]
     assert [len(p) for p in pids] == [1, 1] and os.getpid() not in pids[0] | pids[1]
+
+
+def test_a_quality_row_of_one_run_shows_no_spread():
+    from hipode_pipeline.sweep import report
+
+    def run(arm, seed, final):
+        curve = [[100, final - 2.0], [200, final - 1.0], [300, final]]
+        return {
+            "task": "hopper-m-r",
+            "learner": "iql",
+            "arm": arm,
+            "seed": seed,
+            "final_score": final,
+            "curve": curve,
+        }
+
+    runs = [run("eta0", 1, 40.0), run("eta0", 2, 50.0), run("model-rollouts", 1, 43.0)]
+    arms = {"hopper-m-r": [{"name": name, "learner": "iql"} for name in ("eta0", "model-rollouts")]}
+    summary = report.summarize(runs, arms)
+    quality = report.QualityReport("", {}, {}, arms, {}, runs, summary, "", 0.0)
+    rows = {row[1]: row for row in report.table_rows(quality)}
+    assert rows["eta0"][3] == "45.0 ± 7.1"
+    rollouts = rows["model-rollouts"]
+    assert rollouts[3] == "43.0 (one run)" and rollouts[4] == "+3.0 (one pair)"
+    assert rollouts[8] == "42.0 (one run)" and rollouts[9] == "+3.0 (one pair)"
+    assert summary["hopper-m-r"]["model-rollouts"]["difference"]["eta0"]["sem"] is None

@@ -58,9 +58,9 @@ class QualityReport:
         return self.budget.get("learners", ["td3bc"])
 
 
-def mean_std(values: list[float]) -> tuple[float, float]:
-    """Mean and sample standard deviation (0 for a single value)."""
-    return statistics.fmean(values), statistics.stdev(values) if len(values) > 1 else 0.0
+def mean_std(values: list[float]) -> tuple[float, float | None]:
+    """Mean and sample standard deviation (None for a single value: it has no spread)."""
+    return statistics.fmean(values), statistics.stdev(values) if len(values) > 1 else None
 
 
 def window_score(run: dict[str, Any]) -> float:
@@ -91,7 +91,7 @@ def paired_difference(
         "per_seed": diffs,
         "mean": mean,
         "std": std,
-        "sem": std / math.sqrt(len(diffs)),
+        "sem": None if std is None else std / math.sqrt(len(diffs)),
     }
 
 
@@ -186,13 +186,15 @@ def curve_plot(runs: list[dict[str, Any]], path: Path, learners: list[str]) -> b
     return True
 
 
-def _pm(mean: float, std: float) -> str:
-    return f"{mean:.1f} ± {std:.1f}"
+def _pm(mean: float, std: float | None) -> str:
+    return f"{mean:.1f} (one run)" if std is None else f"{mean:.1f} ± {std:.1f}"
 
 
 def _difference_text(diff: dict[str, Any] | None) -> str:
     if diff is None:
         return ""
+    if diff["std"] is None:
+        return f"{diff['mean']:+.1f} (one pair)"
     return (
         f"{diff['mean']:+.1f} ± {diff['std']:.1f} (sem {diff['sem']:.1f}, n={len(diff['seeds'])})"
     )
