@@ -34,6 +34,7 @@ import torch
 
 from hipode_pipeline import console
 from hipode_pipeline.artifact import read_artifact
+from hipode_pipeline.contract import ArtifactSettings
 from hipode_pipeline.data.load import load_recorded_source, load_source
 from hipode_pipeline.data.normalizer import StateNormalizer
 from hipode_pipeline.data.transitions import Transitions
@@ -115,8 +116,13 @@ class TransitionChecks:
         }
 
 
-# the artifact's rows in tables and plots; any other recorded method shows as "artifact"
+# the artifact's rows in tables and plots; a manifest without settings shows as "artifact"
 METHOD_LABELS = {"hipode": "HIPODE", "model-rollouts": "model-rollout artifact"}
+
+
+def method_label(method: str | None) -> str:
+    """How an artifact's sample is named: by the method that made it."""
+    return METHOD_LABELS.get(method, "artifact")
 
 
 @dataclass(eq=False)
@@ -138,13 +144,14 @@ class VerifyReport:
     analysis: dict[str, Any] | None = None
     json_path: str | None = None  # where the report was written
     png_path: str | None = None  # where the plot was written
-    method: str = "hipode"  # how the artifact was made (its manifest's hyper_parameters.method)
+    # how the artifact was made (its manifest's settings); None where it records none
+    method: str | None = "hipode"
 
     @property
     def artifact_label(self) -> str:
         """The artifact's rows are named by how it was made: a model-rollout artifact is no
         HIPODE sample."""
-        return METHOD_LABELS.get(self.method, "artifact")
+        return method_label(self.method)
 
     def rows(self) -> list[list[Any]]:
         """Table rows: the artifact's sample, then the baseline."""
@@ -494,7 +501,8 @@ def verify_artifact(
     source_id = _manifest_value(path, manifest, "source.id", str)
     source_sha256 = _manifest_value(path, manifest, "source.sha256", str)
     eps = _normalizer_eps(path, manifest)
-    method = _artifact_method(manifest)
+    settings = ArtifactSettings.from_manifest(manifest)
+    method = None if settings is None else settings.method
     if baseline:
         _manifest_value(path, manifest, "hyper_parameters.generator_config", dict)
         _manifest_value(path, manifest, "seeds.generator_training", int)
@@ -542,7 +550,7 @@ def verify_artifact(
             env_id,
             synthetic,
             progress=prog,
-            label=f"simulate {METHOD_LABELS.get(method, 'artifact')}",
+            label=f"simulate {method_label(method)}",
             **common,
         )
         hipode_checks = dataclasses.replace(hipode_checks, rows=picked)
@@ -620,13 +628,6 @@ def verify_artifact(
     report.seconds = {name: round(value, 3) for name, value in seconds.items()}
     _write_json_atomic(json_path, report.to_dict())
     return report
-
-
-def _artifact_method(manifest: dict[str, Any]) -> str:
-    """How the artifact was made; files from before methods were recorded are HIPODE's."""
-    params = manifest.get("hyper_parameters")
-    method = params.get("method", "hipode") if isinstance(params, dict) else "hipode"
-    return method if isinstance(method, str) else repr(method)
 
 
 def _normalizer_eps(path: Path, manifest: dict[str, Any]) -> float:
