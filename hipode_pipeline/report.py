@@ -280,7 +280,7 @@ def interval_estimates(values: np.ndarray, reps: int, seed: int) -> dict[str, An
         "iqm_ci": None if interval is None else [float(interval[0, 0]), float(interval[1, 0])],
         "mean": float(point[1]),
         "mean_ci": None if interval is None else [float(interval[0, 1]), float(interval[1, 1])],
-        "std": float(scores.std(ddof=1)) if len(scores) > 1 else 0.0,
+        "std": float(scores.std(ddof=1)) if len(scores) > 1 else None,
         "n": int(len(scores)),
     }
 

@@ -269,7 +269,8 @@ def test_one_run_or_one_pair_is_reported_without_an_interval(tmp_path):
     groups = {(g["task"], g["augmentation"]): g["measures"]["last"] for g in report["groups"]}
     single, pooled = groups["hopper-m-r", "model-rollouts"], groups["hopper-m-r", "hipode"]
     assert single["n"] == 1 and single["iqm"] == single["mean"] == pytest.approx(22.0)
-    assert single["iqm_ci"] is None and single["mean_ci"] is None
+    assert single["iqm_ci"] is None and single["mean_ci"] is None and single["std"] is None
+    assert pooled["std"] > 0
     assert pooled["mean_ci"][0] < pooled["mean"] < pooled["mean_ci"][1]
     entries = {
         (e["key"]["task"], e["key"]["augmentation"]): e["measures"]["last"]
