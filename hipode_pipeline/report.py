@@ -588,11 +588,15 @@ def across_task_rows(report: dict[str, Any]) -> tuple[list[str], list[list[str]]
 
 
 def replicates_text(group: dict[str, Any]) -> str:
-    """How many runs a group holds and what they vary: training and stage-one seeds."""
-    text = f"{group['n_runs']} ({len(group['seeds'])}"
+    """How many runs a group holds and what they vary: training seeds, stage-one seeds and
+    sources; "of" marks a grid the runs do not fill (its product would overstate them)."""
+    grid = [len(group["seeds"])]
     if group["artifact_seeds"]:
-        text += f" × {len(group['artifact_seeds'])}"
-    return text + ")"
+        grid.append(len(group["artifact_seeds"]))
+    sources = group.get("sources", 1)
+    text = " × ".join(map(str, grid)) + (f" × {sources} sources" if sources > 1 else "")
+    filled = int(np.prod(grid)) * sources == group["n_runs"]
+    return f"{group['n_runs']} ({'' if filled else 'of '}{text})"
 
 
 def markdown(report: dict[str, Any]) -> str:

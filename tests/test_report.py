@@ -22,6 +22,7 @@ from hipode_pipeline.report import (
     improvement,
     interval_estimates,
     plot_curves,
+    replicates_text,
     update_count,
     write_report,
 )
@@ -481,3 +482,20 @@ def test_arms_split_by_stage_one_seed_pair_with_the_one_baseline(pooled_arms):
     assert diffs[("hipode", 1)]["probability_of_improvement"]["probability"] == pytest.approx(2 / 9)
     text = report_markdown(report)
     assert "artifact_seed=-" in text and "| none | - |" in text
+
+
+def test_the_runs_column_names_a_grid_only_when_the_runs_fill_it():
+    def group(seeds, artifact_seeds, sources, n_runs):
+        return {
+            "seeds": seeds,
+            "artifact_seeds": artifact_seeds,
+            "sources": sources,
+            "n_runs": n_runs,
+        }
+
+    assert replicates_text(group([1, 2, 3, 4, 5], [0, 1], 1, 10)) == "10 (5 × 2)"
+    assert replicates_text(group([0, 1, 2, 3, 4], [], 2, 10)) == "10 (5 × 2 sources)"
+    assert replicates_text(group([0, 1, 2, 3, 4], [0, 1], 2, 20)) == "20 (5 × 2 × 2 sources)"
+    # training seeds 1-3 of one artifact and 1-2 of the other: 5 runs, not a 3 × 2 grid
+    assert replicates_text(group([1, 2, 3], [0, 1], 1, 5)) == "5 (of 3 × 2)"
+    assert replicates_text(group([0], [], 1, 1)) == "1 (1)"
