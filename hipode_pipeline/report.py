@@ -593,7 +593,7 @@ def replicates_text(group: dict[str, Any]) -> str:
     grid = [len(group["seeds"])]
     if group["artifact_seeds"]:
         grid.append(len(group["artifact_seeds"]))
-    sources = group.get("sources", 1)
+    sources = group["sources"]
     text = " × ".join(map(str, grid)) + (f" × {sources} sources" if sources > 1 else "")
     filled = int(np.prod(grid)) * sources == group["n_runs"]
     return f"{group['n_runs']} ({'' if filled else 'of '}{text})"
