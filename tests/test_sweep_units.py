@@ -192,3 +192,40 @@ def test_a_quality_row_of_one_run_shows_no_spread():
     assert rollouts[3] == "43.0 (one run)" and rollouts[4] == "+3.0 (one pair)"
     assert rollouts[8] == "42.0 (one run)" and rollouts[9] == "+3.0 (one pair)"
     assert summary["hopper-m-r"]["model-rollouts"]["difference"]["eta0"]["sem"] is None
+
+
+def test_a_rollout_arm_meets_the_hipode_artifact_of_its_own_stage_one_seed():
+    from hipode_pipeline.sweep import report
+
+    def run(arm, seed, final):
+        return {"task": "hopper-m-r", "learner": "iql", "arm": arm, "seed": seed,
+                "final_score": final, "curve": [[100, final]]}  # fmt: skip
+
+    finals = {
+        "eta0": (40.0, 50.0),
+        "hipode": (44.0, 54.0),
+        "artifact-seed1": (30.0, 36.0),
+        "model-rollouts": (45.0, 56.0),
+        "model-rollouts-seed1": (33.0, 40.0),
+    }
+    runs = [run(arm, seed, f) for arm, pair in finals.items() for seed, f in enumerate(pair)]
+    stage_one = {"eta0": None, "hipode": 0, "artifact-seed1": 1, "model-rollouts": 0,
+                 "model-rollouts-seed1": 1}  # fmt: skip
+    arms = {
+        "hopper-m-r": [
+            {"name": name, "learner": "iql", "stage_one_seed": seed}
+            for name, seed in stage_one.items()
+        ]
+    }
+    full = report.summarize(runs, arms)
+    summary = full["hopper-m-r"]
+    seed1 = summary["model-rollouts-seed1"]["difference"]["hipode"]
+    assert seed1["vs"] == "artifact-seed1" and seed1["per_seed"] == [3.0, 4.0]
+    assert summary["model-rollouts"]["difference"]["hipode"]["per_seed"] == [1.0, 2.0]
+    # a HIPODE arm of another stage-one seed meets the hipode arm: the stage-one seeds' spread
+    assert summary["artifact-seed1"]["difference"]["hipode"]["per_seed"] == [-14.0, -18.0]
+    assert "hipode" not in summary["hipode"]["difference"]
+    quality = report.QualityReport("", {}, {}, arms, {}, runs, full, "", 0.0)
+    rows = {row[1]: row for row in report.table_rows(quality)}
+    assert rows["model-rollouts-seed1"][5].endswith("vs artifact-seed1")
+    assert rows["model-rollouts"][5] == "+1.5 ± 0.7 (sem 0.5, n=2)"

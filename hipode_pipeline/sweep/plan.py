@@ -30,6 +30,11 @@ from hipode_pipeline.tasks import LEARNERS, Task, get_task
 
 DEFAULT_TASKS = ("hopper-m-r", "walker2d-m-r", "halfcheetah-m-r")
 BASELINE, HIPODE = "eta0", "hipode"
+
+
+def artifact_seed_arm(seed: int) -> str:
+    """The name of the HIPODE arm built with stage-one seed `seed` (besides the hipode arm's own)."""
+    return f"artifact-seed{seed}"
 ENGINES = ("local", "ray")
 BUDGETS = ("cpu", "paper")
 LEARNER_NAMES = {"td3bc": "TD3+BC", "iql": "IQL", "cql": "CQL"}
@@ -143,7 +148,7 @@ def arms_for(config: SweepConfig) -> list[Arm]:
             f"arm's own artifact seed, found {config.artifact_seeds}"
         )
     arms += [
-        Arm(f"artifact-seed{seed}", "merged", {"seed": seed}, f"HIPODE, stage-one seed {seed}")
+        Arm(artifact_seed_arm(seed), "merged", {"seed": seed}, f"HIPODE, stage-one seed {seed}")
         for seed in config.artifact_seeds
     ]
     if config.model_rollouts:

@@ -10,7 +10,13 @@ from pathlib import Path
 from typing import Any
 
 from hipode_pipeline.files import write_bytes_atomic
-from hipode_pipeline.sweep.plan import BASELINE, HIPODE, SyntheticRows, learner_text
+from hipode_pipeline.sweep.plan import (
+    BASELINE,
+    HIPODE,
+    SyntheticRows,
+    artifact_seed_arm,
+    learner_text,
+)
 
 SYNTHETIC_COLUMNS = (
     "task",
@@ -95,14 +101,31 @@ def paired_difference(
     }
 
 
+def hipode_reference(arm: dict[str, Any], arms: list[dict[str, Any]]) -> str:
+    """The HIPODE arm an arm is compared with: the one built from the same stage-one seed (its
+    generators), so that a rollout arm of seed 1 meets HIPODE of seed 1, not of the hipode arm's
+    seed; the hipode arm where no other HIPODE arm of that seed was planned (for a HIPODE arm of
+    another seed, the difference is the stage-one seed's spread)."""
+    seed = arm.get("stage_one_seed")
+    for other in arms:
+        same_learner = other.get("learner", "td3bc") == arm.get("learner", "td3bc")
+        hipode_of_seed = other["name"] in (HIPODE, artifact_seed_arm(seed))
+        if same_learner and hipode_of_seed and other["name"] != arm["name"]:
+            if other.get("stage_one_seed") == seed:
+                return other["name"]
+    return HIPODE
+
+
 def summarize(runs: list[dict[str, Any]], arms: dict[str, list[dict]]) -> dict[str, Any]:
     """Per task and arm: final scores per seed, mean ± std, and paired differences against the
-    same learner's eta0 and hipode arms."""
+    same learner's eta0 arm and its HIPODE arm of the same stage-one seed (keyed "hipode", its
+    name in the difference's "vs")."""
     summary: dict[str, Any] = {}
     for task, task_arms in arms.items():
         summary[task] = {}
         for arm in task_arms:
             learner = arm.get("learner", "td3bc")
+            references = {BASELINE: BASELINE, HIPODE: hipode_reference(arm, task_arms)}
             # a learner's arms pair with that learner's baselines only
             task_runs = [
                 {**r, "window_score": window_score(r), "curve_mean": curve_mean(r)}
@@ -117,7 +140,7 @@ def summarize(runs: list[dict[str, Any]], arms: dict[str, list[dict]]) -> dict[s
             mean, std = mean_std([r["final_score"] for r in mine])
             window_mean, window_std = mean_std([r["window_score"] for r in mine])
             area_mean, area_std = mean_std([r["curve_mean"] for r in mine])
-            bases = [base for base in (BASELINE, HIPODE) if arm["name"] != base]
+            bases = {key: name for key, name in references.items() if name != arm["name"]}
             summary[task][arm.get("key", arm["name"])] = {
                 "learner": learner,
                 "arm": arm["name"],
@@ -129,18 +152,19 @@ def summarize(runs: list[dict[str, Any]], arms: dict[str, list[dict]]) -> dict[s
                 "window_mean": window_mean,
                 "window_std": window_std,
                 "difference": {
-                    base: paired_difference(task_runs, arm["name"], base) for base in bases
+                    key: paired_difference(task_runs, arm["name"], base)
+                    for key, base in bases.items()
                 },
                 "window_difference": {
-                    base: paired_difference(task_runs, arm["name"], base, "window_score")
-                    for base in bases
+                    key: paired_difference(task_runs, arm["name"], base, "window_score")
+                    for key, base in bases.items()
                 },
                 "curve_means": [r["curve_mean"] for r in mine],
                 "curve_mean": area_mean,
                 "curve_std": area_std,
                 "curve_difference": {
-                    base: paired_difference(task_runs, arm["name"], base, "curve_mean")
-                    for base in bases
+                    key: paired_difference(task_runs, arm["name"], base, "curve_mean")
+                    for key, base in bases.items()
                 },
             }
     return summary
@@ -200,6 +224,12 @@ def _difference_text(diff: dict[str, Any] | None) -> str:
     )
 
 
+def _reference_text(diff: dict[str, Any] | None) -> str:
+    """A difference with the HIPODE arm, naming that arm where it is not the hipode arm."""
+    text = _difference_text(diff)
+    return text if diff is None or diff["vs"] == HIPODE else f"{text} vs {diff['vs']}"
+
+
 def table_rows(report: QualityReport) -> list[list[Any]]:
     """One row per (task, arm): per-seed finals, mean ± std, paired differences."""
     rows = []
@@ -214,7 +244,7 @@ def table_rows(report: QualityReport) -> list[list[Any]]:
                     ", ".join(f"{s:.1f}" for s in arm["final_scores"]),
                     _pm(arm["mean"], arm["std"]),
                     _difference_text(diffs.get(BASELINE)),
-                    "" if baseline_pair else _difference_text(diffs.get(HIPODE)),
+                    "" if baseline_pair else _reference_text(diffs.get(HIPODE)),
                     _pm(arm["window_mean"], arm["window_std"]),
                     _difference_text(arm["window_difference"].get(BASELINE)),
                     _pm(arm["curve_mean"], arm["curve_std"]),
