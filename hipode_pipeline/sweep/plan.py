@@ -31,13 +31,14 @@ from hipode_pipeline.tasks import LEARNERS, Task, get_task
 DEFAULT_TASKS = ("hopper-m-r", "walker2d-m-r", "halfcheetah-m-r")
 BASELINE, HIPODE = "eta0", "hipode"
 
-
-def artifact_seed_arm(seed: int) -> str:
-    """The name of the HIPODE arm built with stage-one seed `seed` (besides the hipode arm's own)."""
-    return f"artifact-seed{seed}"
 ENGINES = ("local", "ray")
 BUDGETS = ("cpu", "paper")
 LEARNER_NAMES = {"td3bc": "TD3+BC", "iql": "IQL", "cql": "CQL"}
+
+
+def artifact_seed_arm(seed: int) -> str:
+    """The HIPODE arm built with stage-one seed `seed`, other than the hipode arm's own."""
+    return f"artifact-seed{seed}"
 
 
 @dataclass(frozen=True)
