@@ -168,21 +168,27 @@ def test_local_worker_processes_each_train_a_unit(tmp_path, tiny):
     assert [len(p) for p in pids] == [1, 1] and os.getpid() not in pids[0] | pids[1]
 
 
+def finished_run(arm, seed, final):
+    """A finished IQL hopper-m-r run record whose curve climbs to `final` in three evaluations."""
+    curve = [[100, final - 2.0], [200, final - 1.0], [300, final]]
+    return {
+        "task": "hopper-m-r",
+        "learner": "iql",
+        "arm": arm,
+        "seed": seed,
+        "final_score": final,
+        "curve": curve,
+    }
+
+
 def test_a_quality_row_of_one_run_shows_no_spread():
     from hipode_pipeline.sweep import report
 
-    def run(arm, seed, final):
-        curve = [[100, final - 2.0], [200, final - 1.0], [300, final]]
-        return {
-            "task": "hopper-m-r",
-            "learner": "iql",
-            "arm": arm,
-            "seed": seed,
-            "final_score": final,
-            "curve": curve,
-        }
-
-    runs = [run("eta0", 1, 40.0), run("eta0", 2, 50.0), run("model-rollouts", 1, 43.0)]
+    runs = [
+        finished_run("eta0", 1, 40.0),
+        finished_run("eta0", 2, 50.0),
+        finished_run("model-rollouts", 1, 43.0),
+    ]
     arms = {"hopper-m-r": [{"name": name, "learner": "iql"} for name in ("eta0", "model-rollouts")]}
     summary = report.summarize(runs, arms)
     quality = report.QualityReport("", {}, {}, arms, {}, runs, summary, "", 0.0)
@@ -197,10 +203,6 @@ def test_a_quality_row_of_one_run_shows_no_spread():
 def test_a_rollout_arm_meets_the_hipode_artifact_of_its_own_stage_one_seed():
     from hipode_pipeline.sweep import report
 
-    def run(arm, seed, final):
-        return {"task": "hopper-m-r", "learner": "iql", "arm": arm, "seed": seed,
-                "final_score": final, "curve": [[100, final]]}  # fmt: skip
-
     finals = {
         "eta0": (40.0, 50.0),
         "hipode": (44.0, 54.0),
@@ -208,7 +210,7 @@ def test_a_rollout_arm_meets_the_hipode_artifact_of_its_own_stage_one_seed():
         "model-rollouts": (45.0, 56.0),
         "model-rollouts-seed1": (33.0, 40.0),
     }
-    runs = [run(arm, seed, f) for arm, pair in finals.items() for seed, f in enumerate(pair)]
+    runs = [finished_run(a, seed, f) for a, pair in finals.items() for seed, f in enumerate(pair)]
     stage_one = {"eta0": None, "hipode": 0, "artifact-seed1": 1, "model-rollouts": 0,
                  "model-rollouts-seed1": 1}  # fmt: skip
     arms = {

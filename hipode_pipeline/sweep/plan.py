@@ -30,7 +30,6 @@ from hipode_pipeline.tasks import LEARNERS, Task, get_task
 
 DEFAULT_TASKS = ("hopper-m-r", "walker2d-m-r", "halfcheetah-m-r")
 BASELINE, HIPODE = "eta0", "hipode"
-
 ENGINES = ("local", "ray")
 BUDGETS = ("cpu", "paper")
 LEARNER_NAMES = {"td3bc": "TD3+BC", "iql": "IQL", "cql": "CQL"}

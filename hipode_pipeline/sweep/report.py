@@ -106,14 +106,16 @@ def hipode_reference(arm: dict[str, Any], arms: list[dict[str, Any]]) -> str:
     generators), so that a rollout arm of seed 1 meets HIPODE of seed 1, not of the hipode arm's
     seed; the hipode arm where no other HIPODE arm of that seed was planned (for a HIPODE arm of
     another seed, the difference is the stage-one seed's spread)."""
-    seed = arm.get("stage_one_seed")
-    for other in arms:
-        same_learner = other.get("learner", "td3bc") == arm.get("learner", "td3bc")
-        hipode_of_seed = other["name"] in (HIPODE, artifact_seed_arm(seed))
-        if same_learner and hipode_of_seed and other["name"] != arm["name"]:
-            if other.get("stage_one_seed") == seed:
-                return other["name"]
-    return HIPODE
+    seed, learner = arm.get("stage_one_seed"), arm.get("learner", "td3bc")
+    candidates = {HIPODE, artifact_seed_arm(seed)} - {arm["name"]}
+    same = (
+        other["name"]
+        for other in arms
+        if other["name"] in candidates
+        and other.get("stage_one_seed") == seed
+        and other.get("learner", "td3bc") == learner
+    )
+    return next(same, HIPODE)
 
 
 def summarize(runs: list[dict[str, Any]], arms: dict[str, list[dict]]) -> dict[str, Any]:
@@ -125,7 +127,6 @@ def summarize(runs: list[dict[str, Any]], arms: dict[str, list[dict]]) -> dict[s
         summary[task] = {}
         for arm in task_arms:
             learner = arm.get("learner", "td3bc")
-            references = {BASELINE: BASELINE, HIPODE: hipode_reference(arm, task_arms)}
             # a learner's arms pair with that learner's baselines only
             task_runs = [
                 {**r, "window_score": window_score(r), "curve_mean": curve_mean(r)}
@@ -140,6 +141,7 @@ def summarize(runs: list[dict[str, Any]], arms: dict[str, list[dict]]) -> dict[s
             mean, std = mean_std([r["final_score"] for r in mine])
             window_mean, window_std = mean_std([r["window_score"] for r in mine])
             area_mean, area_std = mean_std([r["curve_mean"] for r in mine])
+            references = {BASELINE: BASELINE, HIPODE: hipode_reference(arm, task_arms)}
             bases = {key: name for key, name in references.items() if name != arm["name"]}
             summary[task][arm.get("key", arm["name"])] = {
                 "learner": learner,
