@@ -13,15 +13,29 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 
-def cpu_name() -> str:
-    """The CPU model from /proc/cpuinfo, else whatever platform knows."""
+def cpu_name(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
+    """The CPU model from /proc/cpuinfo with its family, model and stepping, else whatever
+    platform knows. Virtual machines may name only the brand ("AMD EPYC") for different
+    generations, on which the numeric libraries can take different code paths and round
+    differently; the three numbers tell those machines apart."""
     try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
+        fields: dict[str, str] = {}
+        for line in cpuinfo.read_text().splitlines():
+            if not line.strip():
+                break  # the first processor's block describes them all
+            key, _, value = line.partition(":")
+            fields.setdefault(key.strip(), value.strip())
     except OSError:
-        pass
-    return platform.processor() or platform.machine()
+        fields = {}
+    if "model name" not in fields:
+        return platform.processor() or platform.machine()
+    generation = [
+        f"{label} {fields[key]}"
+        for label, key in (("family", "cpu family"), ("model", "model"), ("stepping", "stepping"))
+        if key in fields
+    ]
+    name = fields["model name"]
+    return f"{name} ({', '.join(generation)})" if generation else name
 
 
 def utc_now() -> str:

@@ -1,4 +1,4 @@
-"""What produced an output: package versions, Python and the code's git commit.
+"""What produced an output: package versions, Python, the CPU and the code's git commit.
 
 Every dataset, artifact and run folder records this, so a result can be traced to its code.
 """
@@ -13,6 +13,7 @@ from importlib import metadata
 from pathlib import Path
 
 import hipode_pipeline
+from hipode_pipeline.machine import cpu_name
 
 VERSIONED_PACKAGES = ("torch", "numpy", "h5py", "gymnasium", "mujoco", "minari")
 PACKAGE_DIR = Path(hipode_pipeline.__file__).resolve().parent
@@ -26,11 +27,13 @@ ROLLOUT_CODE = (*ARTIFACT_CODE, "rollouts.py")
 
 
 def package_versions() -> dict[str, str | bool | None]:
-    """Versions of this package, its numeric stack, Python, the git commit and whether the
-    package's files differ from it (None if unknown)."""
+    """Versions of this package, its numeric stack, Python, the CPU (the same seed can give other
+    floats on another one), the git commit and whether the package's files differ from it (None
+    if unknown)."""
     versions: dict[str, str | bool | None] = {
         "hipode_pipeline": hipode_pipeline.__version__,
         "python": platform.python_version(),
+        "cpu": cpu_name(),
     }
     for name in VERSIONED_PACKAGES:
         try:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import subprocess
 
-from hipode_pipeline import versions
+from hipode_pipeline import machine, versions
 
 
 def git(folder, *args):
@@ -44,3 +44,16 @@ def test_every_output_records_it():
     recorded = versions.package_versions()
     assert "git_commit" in recorded and "git_modified" in recorded
     assert recorded["git_modified"] in (True, False, None)
+
+
+def test_the_cpu_is_named_with_its_generation(tmp_path):
+    # two processors' blocks, as /proc/cpuinfo lists them; a VM that names only the brand
+    block = "processor\t: {n}\nvendor_id\t: AuthenticAMD\ncpu family\t: 25\nmodel\t\t: 17\n"
+    block += "model name\t: AMD EPYC\nstepping\t: 1\nflags\t\t: fpu avx512f\n\n"
+    cpuinfo = tmp_path / "cpuinfo"
+    cpuinfo.write_text(block.format(n=0) + block.format(n=1).replace(": 17", ": 2"))
+    assert machine.cpu_name(cpuinfo) == "AMD EPYC (family 25, model 17, stepping 1)"
+    cpuinfo.write_text("processor\t: 0\nmodel name\t: Some CPU\n")
+    assert machine.cpu_name(cpuinfo) == "Some CPU"
+    assert machine.cpu_name(tmp_path / "absent") != ""
+    assert versions.package_versions()["cpu"] == machine.cpu_name()
