@@ -17,8 +17,8 @@ training seeds and stage-one seeds independently (crossed), so the interval cove
 of variance. A group holds runs of one budget (`steps`). With `task` among the keys,
 comparisons are also aggregated over tasks: the mean over tasks of each task's mean paired
 difference, bootstrapped within each task (stratified). One run, or one pair, has no spread to
-resample: such a statistic is reported without an interval, and so is a mean over tasks where
-any task lacks one.
+resample: such a statistic is reported without an interval, and so is a paired difference
+where any source holds a single pair, and a mean over tasks where any task lacks one.
 
 Run folders are read only (`scores.json`, a finished run's record); scores are D4RL-normalized
 on whatever data the runs used (here: Gymnasium v5 datasets built locally, scored with D4RL's
@@ -31,6 +31,7 @@ import csv
 import io
 import json
 import warnings
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -334,11 +335,14 @@ def crossed_bootstrap(cells: dict[tuple, float], reps: int, seed: int) -> np.nda
 
 def paired_difference(cells: dict[tuple, float], reps: int, seed: int) -> dict[str, Any] | None:
     """Mean over the paired replicates of arm - baseline, with a crossed bootstrap 95 % CI
-    (none from a single pair)."""
+    (none where a source holds a single pair: the strata are kept, so that pair would enter
+    every resample unchanged and the interval would show no spread it never measured)."""
     if not cells:
         return None
     diffs = np.array(list(cells.values()))
-    means = crossed_bootstrap(cells, reps, seed) if len(cells) >= MIN_FOR_INTERVAL else None
+    per_source = Counter(key[0] for key in cells)
+    resamplable = min(per_source.values()) >= MIN_FOR_INTERVAL
+    means = crossed_bootstrap(cells, reps, seed) if resamplable else None
     return {
         "mean": float(diffs.mean()),
         "ci": None

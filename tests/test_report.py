@@ -41,10 +41,11 @@ def write_run(
     artifact_seed=0,
     method: str | None = None,
     steps: int | None = None,
+    source: str | None = None,
 ):
     folder.mkdir(parents=True)
     evaluations = [{"step": 100 * (i + 1), "score_mean": s} for i, s in enumerate(scores)]
-    identity = {"mixing": "mixed", "artifact_seed": artifact_seed, "source_sha256": task}
+    identity = {"mixing": "mixed", "artifact_seed": artifact_seed, "source_sha256": source or task}
     if method is not None:
         identity["artifact_hyper_parameters"] = {"method": method, "eta": 0.5}
     (folder / "scores.json").write_text(
@@ -251,6 +252,34 @@ def test_comparisons_are_aggregated_over_tasks(tmp_path):
     assert all(group["n_runs"] == 3 for _, group in panels["walker2d-m-r"])
     plot_curves(report, tmp_path / "curves.png")
     assert (tmp_path / "curves.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_a_source_with_a_single_pair_leaves_the_pooled_difference_without_an_interval(tmp_path):
+    # two sources of one task; the hipode arm has two training seeds on each, the rollout arm
+    # one: sources are strata, so a lone pair would enter every resample unchanged
+    runs = tmp_path / "runs"
+    for source, shift in (("a", 4.0), ("b", -6.0)):
+        for seed in (0, 1):
+            base = 20.0 + 3 * seed
+            for data, method, final in (
+                ("source", None, base),
+                ("merged", "hipode", base + shift + seed),
+                ("merged", "model-rollouts", base + shift),
+            ):
+                if method == "model-rollouts" and seed == 1:
+                    continue
+                name = f"{source}-{method or 'none'}-{seed}"
+                write_run(
+                    runs / name, data=data, seed=seed, scores=[final], method=method, source=source
+                )
+    report = build_report(find_runs([runs]), by=POOLED, compare=("augmentation", "none"), reps=500)
+    entries = {e["key"]["augmentation"]: e["measures"]["last"] for e in report["comparisons"]}
+    rollouts = entries["model-rollouts"]["paired_difference"]
+    assert rollouts["pairs"] == 2 and rollouts["mean"] == pytest.approx(-1.0)
+    assert rollouts["ci"] is None
+    hipode = entries["hipode"]["paired_difference"]
+    assert hipode["pairs"] == 4 and hipode["ci"][0] < hipode["mean"] < hipode["ci"][1]
+    assert "-1.0 (no interval)" in report_markdown(report)
 
 
 def test_one_run_or_one_pair_is_reported_without_an_interval(tmp_path):
