@@ -336,7 +336,7 @@ def crossed_bootstrap(cells: dict[tuple, float], reps: int, seed: int) -> np.nda
 def paired_difference(cells: dict[tuple, float], reps: int, seed: int) -> dict[str, Any] | None:
     """Mean over the paired replicates of arm - baseline, with a crossed bootstrap 95 % CI
     (none where a source holds a single pair: the strata are kept, so that pair would enter
-    every resample unchanged and the interval would show no spread it never measured)."""
+    every resample unchanged and the interval would leave out its source's spread)."""
     if not cells:
         return None
     diffs = np.array(list(cells.values()))
