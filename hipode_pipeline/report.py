@@ -5,9 +5,11 @@ evaluation's score, the mean of the last k evaluations, and the curve mean (over
 evaluations, a learning-speed measure). Across the group's seeds: the interquartile mean (IQM)
 and the mean, each with a stratified bootstrap 95 % confidence interval (rliable; with one task
 per group the bootstrap resamples seeds). Against a baseline arm (`--compare data=source`): the
-probability of improvement P(X > Y) with its bootstrap CI (rliable) and the paired difference of
-the per-seed measure, over the seeds both arms ran, with a bootstrap CI. Learning curves: the
-mean score over seeds per evaluation step, with a bootstrap 95 % CI of that mean.
+probability of improvement P(X > Y) over runs on the same source, with its bootstrap CI
+(rliable's where the runs share one source; sources as strata otherwise), and the paired
+difference of the per-seed measure, over the seeds both arms ran, with a bootstrap CI.
+Learning curves: the mean score over seeds per evaluation step, with a bootstrap 95 % CI of
+that mean.
 
 A run is one replicate: (source dataset, stage-one seed of its artifact, training seed). Arms
 whose artifacts were built with several stage-one seeds pool them (group by `augmentation`:
@@ -297,6 +299,38 @@ def improvement(x: np.ndarray, y: np.ndarray, reps: int, seed: int) -> dict[str,
     return {"probability": float(point), "ci": [float(interval[0, 0]), float(interval[1, 0])]}
 
 
+def improvement_within_sources(
+    mine: list[Run], theirs: list[Run], name: str, k: int, reps: int, seed: int
+) -> dict[str, Any] | None:
+    """P(a run of the arm scores above a run of the baseline on the same source), ties counting
+    one half: over every (arm run, baseline run) couple that shares a source, so runs on
+    different datasets are never compared. One shared source: rliable's, as `improvement`.
+    Several: sources are strata, each arm's runs resampled within each source; no interval where
+    a source has a single run on either side. None where the arms share no source."""
+    by_source: dict[Any, tuple[list[float], list[float]]] = {}
+    for runs, side in ((mine, 0), (theirs, 1)):
+        for run in runs:
+            by_source.setdefault(run.replicate[0], ([], []))[side].append(run.measure(name, k))
+    shared = [(np.array(x), np.array(y)) for x, y in by_source.values() if x and y]
+    if not shared:
+        return None
+    if len(shared) == 1:
+        return {**improvement(*shared[0], reps, seed), "sources": 1}
+    couples = sum(len(x) * len(y) for x, y in shared)
+    wins = [(x[:, None] > y[None, :]) + 0.5 * (x[:, None] == y[None, :]) for x, y in shared]
+    point = sum(w.sum() for w in wins) / couples
+    if min(min(len(x), len(y)) for x, y in shared) < MIN_FOR_INTERVAL:
+        return {"probability": float(point), "ci": None, "sources": len(shared)}
+    rng = np.random.default_rng(seed)
+    total = np.zeros(reps)
+    for w in wins:
+        rows = rng.integers(w.shape[0], size=(reps, w.shape[0]))
+        columns = rng.integers(w.shape[1], size=(reps, w.shape[1]))
+        total += w[rows[:, :, None], columns[:, None, :]].sum(axis=(1, 2))
+    low, high = np.quantile(total / couples, [0.025, 0.975])
+    return {"probability": float(point), "ci": [float(low), float(high)], "sources": len(shared)}
+
+
 def paired_cells(mine: list[Run], theirs: list[Run], name: str, k: int) -> dict[tuple, float]:
     """arm - baseline per replicate of the arm: each run minus the baseline's run of the same
     source and training seed (and the same stage-one seed where the baseline has them too)."""
@@ -464,11 +498,11 @@ def build_report(
                 "measures": {},
             }
             for name in MEASURES:
-                mine = np.array([r.measure(name, k) for r in group.runs])
-                theirs = np.array([r.measure(name, k) for r in base.runs])
                 cells = paired_cells(group.runs, base.runs, name, k)
                 entry["measures"][name] = {
-                    "probability_of_improvement": improvement(mine, theirs, reps, seed),
+                    "probability_of_improvement": improvement_within_sources(
+                        group.runs, base.runs, name, k, reps, seed
+                    ),
                     "paired_difference": paired_difference(cells, reps, seed),
                 }
             comparisons.append(entry)
@@ -485,8 +519,9 @@ def build_report(
             "seed); an arm pooling several stage-one seeds has one run per pair of seeds",
             "iqm": "interquartile mean over runs (rliable aggregate_iqm)",
             "ci": "stratified bootstrap 95 % CI over runs (rliable get_interval_estimates)",
-            "probability_of_improvement": "P(a seed of the arm scores above a seed of the "
-            "baseline), rliable, with its bootstrap CI",
+            "probability_of_improvement": "P(a run of the arm scores above a run of the "
+            "baseline on the same source), ties counting one half; one source: rliable's, with "
+            "its bootstrap CI; several: sources as strata, runs resampled within each",
             "paired_difference": "mean over the arm's runs of run - the baseline's run of the "
             "same source and training seed; 95 % CI from a crossed bootstrap (training seeds "
             "and stage-one seeds resampled independently, sources as strata)",
@@ -536,9 +571,11 @@ def difference_text(d: dict[str, Any] | None) -> str:
     return f"{d['mean']:+.1f} [{d['ci'][0]:+.1f}, {d['ci'][1]:+.1f}]"
 
 
-def probability_text(p: dict[str, Any]) -> str:
+def probability_text(p: dict[str, Any] | None) -> str:
     """P(improvement) with its interval: '0.02 [0.00, 0.12]'; '1.00 (no interval)' where an arm
-    has one run."""
+    has one run (on some source); '-' where the arms share no source."""
+    if p is None:
+        return "-"
     if p["ci"] is None:
         return f"{p['probability']:.2f} ({NO_INTERVAL})"
     return f"{p['probability']:.2f} [{p['ci'][0]:.2f}, {p['ci'][1]:.2f}]"

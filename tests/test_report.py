@@ -20,6 +20,7 @@ from hipode_pipeline.report import (
     difference_points,
     find_runs,
     improvement,
+    improvement_within_sources,
     interval_estimates,
     plot_curves,
     replicates_text,
@@ -282,6 +283,54 @@ def test_a_source_with_a_single_pair_leaves_the_pooled_difference_without_an_int
     assert "-1.0 (no interval)" in report_markdown(report)
 
 
+def test_probability_of_improvement_compares_runs_of_the_same_source_only(tmp_path):
+    # the arm beats the baseline on both sources, but source b scores far below source a:
+    # comparing across sources would count b's arm runs as losing to a's baseline runs
+    runs = tmp_path / "runs"
+    scores = {"a": ([50.0, 52.0], [60.0, 62.0]), "b": ([10.0, 12.0], [20.0, 22.0])}
+    for source, (baseline, arm) in scores.items():
+        for seed, (base, mine) in enumerate(zip(baseline, arm, strict=True)):
+            write_run(
+                runs / f"{source}-n{seed}", data="source", seed=seed, scores=[base], source=source
+            )
+            write_run(
+                runs / f"{source}-h{seed}",
+                data="merged",
+                seed=seed,
+                scores=[mine],
+                method="hipode",
+                source=source,
+            )
+    # a source only the baseline ran is left out: there is nothing of the arm's to compare
+    write_run(runs / "c-n0", data="source", seed=0, scores=[90.0], source="c")
+    report = build_report(find_runs([runs]), by=POOLED, compare=("augmentation", "none"), reps=500)
+    (entry,) = report["comparisons"]
+    within = entry["measures"]["last"]["probability_of_improvement"]
+    assert within == {
+        "probability": pytest.approx(1.0),
+        "ci": pytest.approx([1.0, 1.0]),
+        "sources": 2,
+    }
+    pooled = improvement(
+        np.array([60.0, 62.0, 20.0, 22.0]), np.array([50.0, 52.0, 10.0, 12.0]), 500, 0
+    )
+    assert pooled["probability"] == pytest.approx(12 / 16)  # what ignoring the sources gives
+    # the sources are strata: each resamples its own runs, so a's spread shows in the interval
+    write_run(runs / "a-h2", data="merged", seed=2, scores=[49.0], method="hipode", source="a")
+    write_run(runs / "a-n2", data="source", seed=2, scores=[51.0], source="a")
+    found = find_runs([runs])
+    arm = [r for r in found if r.path.name.startswith(("a-h", "b-h"))]
+    base = [r for r in found if r.path.name.startswith(("a-n", "b-n"))]
+    # a: 60 and 62 beat all three, 49 none: 6 of 9; b: 4 of 4
+    spread = improvement_within_sources(arm, base, "last", 1, 2000, 0)
+    assert spread["probability"] == pytest.approx(10 / 13) and spread["sources"] == 2
+    assert spread["ci"][0] < 10 / 13 < spread["ci"][1] == pytest.approx(1.0)
+    # one run of the arm on a source: no spread to resample there
+    lone = improvement_within_sources(arm[:1] + arm[3:], base, "last", 1, 500, 0)
+    assert lone["ci"] is None and lone["sources"] == 2
+    assert improvement_within_sources(arm[:1], base[3:], "last", 1, 500, 0) is None
+
+
 def test_one_run_or_one_pair_is_reported_without_an_interval(tmp_path):
     runs = tmp_path / "runs"
     write_two_tasks(runs, {"hopper-m-r": 5.0, "walker2d-m-r": -15.0}, noise=2.0)
@@ -309,7 +358,11 @@ def test_one_run_or_one_pair_is_reported_without_an_interval(tmp_path):
     hopper = entries["hopper-m-r", "model-rollouts"]
     assert hopper["paired_difference"]["mean"] == pytest.approx(2.0)
     assert hopper["paired_difference"]["pairs"] == 1 and hopper["paired_difference"]["ci"] is None
-    assert hopper["probability_of_improvement"] == {"probability": pytest.approx(1 / 3), "ci": None}
+    assert hopper["probability_of_improvement"] == {
+        "probability": pytest.approx(1 / 3),
+        "ci": None,
+        "sources": 1,
+    }
     across = {e["key"]["augmentation"]: e["measures"]["last"] for e in report["across_tasks"]}
     assert across["model-rollouts"]["mean"] == pytest.approx((2.0 - 3.0) / 2)
     assert across["model-rollouts"]["ci"] is None and across["hipode"]["ci"] is not None
