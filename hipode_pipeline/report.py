@@ -4,9 +4,10 @@ Per group of runs (default: same task, learner and data), three per-run measures
 evaluation's score, the mean of the last k evaluations, and the curve mean (over all
 evaluations, a learning-speed measure). Across the group's seeds: the interquartile mean (IQM)
 and the mean, each with a stratified bootstrap 95 % confidence interval (rliable; with one task
-per group the bootstrap resamples seeds). Against a baseline arm (`--compare data=source`): the
-probability of improvement P(X > Y) over runs on the same source, with its bootstrap CI
-(rliable's where the runs share one source; sources as strata otherwise), and the paired
+per group the bootstrap resamples seeds; a group spanning several source datasets resamples
+each source's runs within it, the sources being strata throughout). Against a baseline arm
+(`--compare data=source`): the probability of improvement P(X > Y) over runs on the same
+source, with its bootstrap CI (rliable's where the runs share one source), and the paired
 difference of the per-seed measure, over the seeds both arms ran, with a bootstrap CI.
 Learning curves: the mean score over seeds per evaluation step, with a bootstrap 95 % CI of
 that mean.
@@ -19,8 +20,9 @@ training seeds and stage-one seeds independently (crossed), so the interval cove
 of variance. A group holds runs of one budget (`steps`). With `task` among the keys,
 comparisons are also aggregated over tasks: the mean over tasks of each task's mean paired
 difference, bootstrapped within each task (stratified). One run, or one pair, has no spread to
-resample: such a statistic is reported without an interval, and so is a paired difference
-where any source holds a single pair, and a mean over tasks where any task lacks one.
+resample: such a statistic is reported without an interval, and so is a group statistic, a
+P(improvement) or a paired difference where any source holds a single run or pair, and a mean
+over tasks where any task lacks one.
 
 Run folders are read only (`scores.json`, a finished run's record); scores are D4RL-normalized
 on whatever data the runs used (here: Gymnasium v5 datasets built locally, scored with D4RL's
@@ -266,15 +268,39 @@ def _bootstrap(scores: Any, func, reps: int, seed: int) -> tuple[Any, np.ndarray
     return point["x"], interval["x"]
 
 
-def interval_estimates(values: np.ndarray, reps: int, seed: int) -> dict[str, Any]:
-    """IQM and mean of per-seed `values` with stratified bootstrap 95 % CIs (rliable)."""
+def within_strata(strata: Sequence[Any], reps: int, rng: np.random.Generator) -> np.ndarray:
+    """`reps` resamples of the indices 0..n-1, each drawing every stratum's members from that
+    stratum only (reps x n); one stratum is a plain bootstrap of the n indices."""
+    labels = list(strata)
+    picks = np.empty((reps, len(labels)), dtype=np.int64)
+    for stratum in dict.fromkeys(labels):
+        members = np.array([i for i, label in enumerate(labels) if label == stratum])
+        picks[:, members] = members[rng.integers(len(members), size=(reps, len(members)))]
+    return picks
+
+
+def interval_estimates(
+    values: np.ndarray, reps: int, seed: int, strata: Sequence[Any] | None = None
+) -> dict[str, Any]:
+    """IQM and mean of per-run `values` with bootstrap 95 % CIs: rliable's over the runs, or,
+    where `strata` (each run's source) name several, runs resampled within their own source (no
+    interval where a source holds a single run: it would enter every resample unchanged)."""
     _, metrics = _rliable()
     scores = np.asarray(values, dtype=np.float64).reshape(-1, 1)
 
     def aggregates(x: np.ndarray) -> np.ndarray:
         return np.array([metrics.aggregate_iqm(x), metrics.aggregate_mean(x)])
 
-    if len(scores) < MIN_FOR_INTERVAL:
+    counts = Counter(strata if strata is not None else [None] * len(scores))
+    if len(counts) > 1:
+        point, interval = aggregates(scores), None
+        if min(counts.values()) >= MIN_FOR_INTERVAL:
+            from scipy.stats import trim_mean  # rliable's IQM, one resample per row
+
+            resampled = scores[:, 0][within_strata(strata, reps, np.random.default_rng(seed))]
+            samples = np.stack([trim_mean(resampled, 0.25, axis=1), resampled.mean(axis=1)])
+            interval = np.quantile(samples, [0.025, 0.975], axis=1)
+    elif len(scores) < MIN_FOR_INTERVAL:
         point, interval = aggregates(scores), None
     else:
         point, interval = _bootstrap(scores, aggregates, reps, seed)
@@ -473,9 +499,10 @@ def build_report(
             "n_runs": len(group.runs),
             "measures": {},
         }
+        sources = [r.replicate[0] for r in group.runs]
         for name in MEASURES:
             values = np.array([r.measure(name, k) for r in group.runs])
-            row["measures"][name] = interval_estimates(values, reps, seed)
+            row["measures"][name] = interval_estimates(values, reps, seed, sources)
         row["curve"] = mean_curve(group.runs, reps, seed)
         row["runs"] = [str(r.path) for r in group.runs]
         rows.append(row)
@@ -518,7 +545,8 @@ def build_report(
             "run": "one replicate: (source dataset, stage-one seed of the artifact, training "
             "seed); an arm pooling several stage-one seeds has one run per pair of seeds",
             "iqm": "interquartile mean over runs (rliable aggregate_iqm)",
-            "ci": "stratified bootstrap 95 % CI over runs (rliable get_interval_estimates)",
+            "ci": "bootstrap 95 % CI over runs (rliable get_interval_estimates); a group "
+            "spanning several sources resamples each source's runs within it",
             "probability_of_improvement": "P(a run of the arm scores above a run of the "
             "baseline on the same source), ties counting one half; one source: rliable's, with "
             "its bootstrap CI; several: sources as strata, runs resampled within each",
@@ -537,12 +565,12 @@ def build_report(
 
 
 def mean_curve(runs: list[Run], reps: int, seed: int) -> dict[str, list]:
-    """Mean score over seeds at each step every run evaluated, with a bootstrap 95 % CI."""
+    """Mean score over seeds at each step every run evaluated, with a bootstrap 95 % CI (runs
+    resampled within their source)."""
     steps = sorted(set.intersection(*(set(r.steps) for r in runs)))
     by_step = [dict(zip(r.steps, r.scores, strict=True)) for r in runs]
     matrix = np.array([[scores[s] for s in steps] for scores in by_step])
-    rng = np.random.default_rng(seed)
-    picks = rng.integers(len(runs), size=(reps, len(runs)))
+    picks = within_strata([r.replicate[0] for r in runs], reps, np.random.default_rng(seed))
     means = matrix[picks].mean(axis=1)
     return {
         "steps": steps,

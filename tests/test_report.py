@@ -283,6 +283,36 @@ def test_a_source_with_a_single_pair_leaves_the_pooled_difference_without_an_int
     assert "-1.0 (no interval)" in report_markdown(report)
 
 
+def test_a_group_spanning_sources_resamples_runs_within_each_source(tmp_path):
+    # each source's runs agree, the sources differ: resampled within its source, every resample
+    # keeps two runs of each, so the mean cannot move; pooled as one, it would swing from 10 to 50
+    runs = tmp_path / "runs"
+    for source, final in (("a", 10.0), ("b", 50.0)):
+        for seed in (0, 1):
+            write_run(
+                runs / f"{source}-{seed}",
+                data="source",
+                seed=seed,
+                scores=[final, final],
+                source=source,
+            )
+    report = build_report(find_runs([runs]), by=POOLED, reps=1000)
+    (group,) = report["groups"]
+    last = group["measures"]["last"]
+    assert group["sources"] == 2 and last["mean"] == pytest.approx(30.0)
+    assert last["mean_ci"] == pytest.approx([30.0, 30.0])
+    assert last["iqm_ci"] == pytest.approx([30.0, 30.0])
+    assert group["curve"]["ci_low"] == group["curve"]["ci_high"] == pytest.approx([30.0, 30.0])
+    # a source with a single run: nothing to resample there, so no interval for the group
+    write_run(runs / "c-0", data="source", seed=0, scores=[20.0, 20.0], source="c")
+    (group,) = build_report(find_runs([runs]), by=POOLED, reps=1000)["groups"]
+    assert group["measures"]["last"]["mean_ci"] is None
+    assert group["measures"]["last"]["mean"] == pytest.approx(140 / 5)
+    assert "28.0 (no interval)" in report_markdown(
+        build_report(find_runs([runs]), by=POOLED, reps=200)
+    )
+
+
 def test_probability_of_improvement_compares_runs_of_the_same_source_only(tmp_path):
     # the arm beats the baseline on both sources, but source b scores far below source a:
     # comparing across sources would count b's arm runs as losing to a's baseline runs
