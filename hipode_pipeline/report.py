@@ -279,31 +279,38 @@ def within_strata(strata: Sequence[Any], reps: int, rng: np.random.Generator) ->
     return picks
 
 
+def has_spread(strata: Sequence[Any]) -> bool:
+    """Whether a bootstrap within these strata (each run's source) can move: every stratum
+    holds at least two runs, else a lone run enters every resample unchanged."""
+    return bool(strata) and min(Counter(strata).values()) >= MIN_FOR_INTERVAL
+
+
 def interval_estimates(
     values: np.ndarray, reps: int, seed: int, strata: Sequence[Any] | None = None
 ) -> dict[str, Any]:
-    """IQM and mean of per-run `values` with bootstrap 95 % CIs: rliable's over the runs, or,
-    where `strata` (each run's source) name several, runs resampled within their own source (no
-    interval where a source holds a single run: it would enter every resample unchanged)."""
+    """IQM and mean of per-run `values` with bootstrap 95 % CIs: rliable's over the runs of one
+    source; where `strata` (each run's source) name several, our own percentile bootstrap that
+    resamples each source's runs within it. No interval where a source holds a single run."""
     _, metrics = _rliable()
     scores = np.asarray(values, dtype=np.float64).reshape(-1, 1)
+    strata = [None] * len(scores) if strata is None else list(strata)
+    if len(strata) != len(scores):
+        raise ValueError(f"expected one stratum per value, found {len(strata)} for {len(scores)}")
 
     def aggregates(x: np.ndarray) -> np.ndarray:
         return np.array([metrics.aggregate_iqm(x), metrics.aggregate_mean(x)])
 
-    counts = Counter(strata if strata is not None else [None] * len(scores))
-    if len(counts) > 1:
+    if not has_spread(strata):
         point, interval = aggregates(scores), None
-        if min(counts.values()) >= MIN_FOR_INTERVAL:
-            from scipy.stats import trim_mean  # rliable's IQM, one resample per row
-
-            resampled = scores[:, 0][within_strata(strata, reps, np.random.default_rng(seed))]
-            samples = np.stack([trim_mean(resampled, 0.25, axis=1), resampled.mean(axis=1)])
-            interval = np.quantile(samples, [0.025, 0.975], axis=1)
-    elif len(scores) < MIN_FOR_INTERVAL:
-        point, interval = aggregates(scores), None
-    else:
+    elif len(set(strata)) == 1:
         point, interval = _bootstrap(scores, aggregates, reps, seed)
+    else:
+        from scipy.stats import trim_mean  # rliable's IQM, one resample per row
+
+        point = aggregates(scores)
+        resampled = scores[:, 0][within_strata(strata, reps, np.random.default_rng(seed))]
+        samples = np.stack([trim_mean(resampled, 0.25, axis=1), resampled.mean(axis=1)])
+        interval = np.quantile(samples, [0.025, 0.975], axis=1)
     return {
         "iqm": float(point[0]),
         "iqm_ci": None if interval is None else [float(interval[0, 0]), float(interval[1, 0])],
@@ -545,8 +552,9 @@ def build_report(
             "run": "one replicate: (source dataset, stage-one seed of the artifact, training "
             "seed); an arm pooling several stage-one seeds has one run per pair of seeds",
             "iqm": "interquartile mean over runs (rliable aggregate_iqm)",
-            "ci": "bootstrap 95 % CI over runs (rliable get_interval_estimates); a group "
-            "spanning several sources resamples each source's runs within it",
+            "ci": "bootstrap 95 % CI over runs: rliable's get_interval_estimates for runs of "
+            "one source; for several, a percentile bootstrap resampling each source's runs "
+            "within it",
             "probability_of_improvement": "P(a run of the arm scores above a run of the "
             "baseline on the same source), ties counting one half; one source: rliable's, with "
             "its bootstrap CI; several: sources as strata, runs resampled within each",
@@ -564,20 +572,24 @@ def build_report(
     }
 
 
-def mean_curve(runs: list[Run], reps: int, seed: int) -> dict[str, list]:
+def mean_curve(runs: list[Run], reps: int, seed: int) -> dict[str, Any]:
     """Mean score over seeds at each step every run evaluated, with a bootstrap 95 % CI (runs
-    resampled within their source)."""
+    resampled within their source); no band (None) where a source holds a single run."""
     steps = sorted(set.intersection(*(set(r.steps) for r in runs)))
     by_step = [dict(zip(r.steps, r.scores, strict=True)) for r in runs]
     matrix = np.array([[scores[s] for s in steps] for scores in by_step])
-    picks = within_strata([r.replicate[0] for r in runs], reps, np.random.default_rng(seed))
-    means = matrix[picks].mean(axis=1)
-    return {
+    sources = [r.replicate[0] for r in runs]
+    curve: dict[str, Any] = {
         "steps": steps,
         "mean": matrix.mean(axis=0).round(4).tolist(),
-        "ci_low": np.quantile(means, 0.025, axis=0).round(4).tolist(),
-        "ci_high": np.quantile(means, 0.975, axis=0).round(4).tolist(),
+        "ci_low": None,
+        "ci_high": None,
     }
+    if has_spread(sources):
+        means = matrix[within_strata(sources, reps, np.random.default_rng(seed))].mean(axis=1)
+        curve["ci_low"] = np.quantile(means, 0.025, axis=0).round(4).tolist()
+        curve["ci_high"] = np.quantile(means, 0.975, axis=0).round(4).tolist()
+    return curve
 
 
 def interval_text(m: dict[str, Any], name: str) -> str:
@@ -797,11 +809,13 @@ def plot_curves(report: dict[str, Any], path: Path) -> None:
         for arm, group in curves:
             color = colors.setdefault(arm, f"C{len(colors) % 10}")
             curve = group["curve"]
-            label = f"{arm} ({group['n_runs']} runs)"
+            banded = curve["ci_low"] is not None
+            label = f"{arm} ({group['n_runs']} runs{'' if banded else ', no band'})"
             axis.plot(curve["steps"], curve["mean"], color=color, label=label)
-            axis.fill_between(
-                curve["steps"], curve["ci_low"], curve["ci_high"], color=color, alpha=0.2
-            )
+            if banded:
+                axis.fill_between(
+                    curve["steps"], curve["ci_low"], curve["ci_high"], color=color, alpha=0.2
+                )
         axis.set_title(title, fontsize=10)
         axis.xaxis.set_major_locator(MaxNLocator(5))
         axis.xaxis.set_major_formatter(FuncFormatter(update_count))

@@ -284,11 +284,12 @@ def test_a_source_with_a_single_pair_leaves_the_pooled_difference_without_an_int
 
 
 def test_a_group_spanning_sources_resamples_runs_within_each_source(tmp_path):
-    # each source's runs agree, the sources differ: resampled within its source, every resample
-    # keeps two runs of each, so the mean cannot move; pooled as one, it would swing from 10 to 50
+    # source a's runs end at 10 and 20, b's both at 50: resampled within its source, a resample
+    # holds two of a's and two of b's, so its mean is 30, 32.5 or 35; pooled as one, it would
+    # swing from 10 to 50
     runs = tmp_path / "runs"
-    for source, final in (("a", 10.0), ("b", 50.0)):
-        for seed in (0, 1):
+    for source, finals in (("a", (10.0, 20.0)), ("b", (50.0, 50.0))):
+        for seed, final in enumerate(finals):
             write_run(
                 runs / f"{source}-{seed}",
                 data="source",
@@ -296,21 +297,23 @@ def test_a_group_spanning_sources_resamples_runs_within_each_source(tmp_path):
                 scores=[final, final],
                 source=source,
             )
-    report = build_report(find_runs([runs]), by=POOLED, reps=1000)
+    report = build_report(find_runs([runs]), by=POOLED, reps=2000)
     (group,) = report["groups"]
     last = group["measures"]["last"]
-    assert group["sources"] == 2 and last["mean"] == pytest.approx(30.0)
-    assert last["mean_ci"] == pytest.approx([30.0, 30.0])
-    assert last["iqm_ci"] == pytest.approx([30.0, 30.0])
-    assert group["curve"]["ci_low"] == group["curve"]["ci_high"] == pytest.approx([30.0, 30.0])
-    # a source with a single run: nothing to resample there, so no interval for the group
-    write_run(runs / "c-0", data="source", seed=0, scores=[20.0, 20.0], source="c")
-    (group,) = build_report(find_runs([runs]), by=POOLED, reps=1000)["groups"]
+    assert group["sources"] == 2 and last["mean"] == pytest.approx(32.5)
+    assert last["mean_ci"] == pytest.approx([30.0, 35.0])
+    assert group["curve"]["ci_low"] == pytest.approx([30.0, 30.0])
+    assert group["curve"]["ci_high"] == pytest.approx([35.0, 35.0])
+    # a source with a single run: nothing to resample there, so no interval and no band
+    write_run(runs / "c-0", data="source", seed=0, scores=[25.0, 25.0], source="c")
+    report = build_report(find_runs([runs]), by=POOLED, reps=200)
+    (group,) = report["groups"]
     assert group["measures"]["last"]["mean_ci"] is None
-    assert group["measures"]["last"]["mean"] == pytest.approx(140 / 5)
-    assert "28.0 (no interval)" in report_markdown(
-        build_report(find_runs([runs]), by=POOLED, reps=200)
-    )
+    assert group["measures"]["last"]["mean"] == pytest.approx(155 / 5)
+    assert group["curve"]["ci_low"] is None and group["curve"]["ci_high"] is None
+    assert "31.0 (no interval)" in report_markdown(report)
+    plot_curves(report, tmp_path / "curves.png")  # draws the mean without a band
+    assert (tmp_path / "curves.png").read_bytes()[:4] == b"\x89PNG"
 
 
 def test_probability_of_improvement_compares_runs_of_the_same_source_only(tmp_path):
@@ -355,6 +358,60 @@ def test_probability_of_improvement_compares_runs_of_the_same_source_only(tmp_pa
     spread = improvement_within_sources(arm, base, "last", 1, 2000, 0)
     assert spread["probability"] == pytest.approx(10 / 13) and spread["sources"] == 2
     assert spread["ci"][0] < 10 / 13 < spread["ci"][1] == pytest.approx(1.0)
+    # exact: a's arm runs 60 and 49 beat both baseline runs or neither, b's always win, so a
+    # resample within the sources reads 4, 6 or 8 of 8 (49 twice: one time in four)
+    exact = tmp_path / "exact"
+    for source, pairs in (("a", ((60.0, 50.0), (49.0, 52.0))), ("b", ((20.0, 10.0), (22.0, 12.0)))):
+        for seed, (mine, base_score) in enumerate(pairs):
+            write_run(
+                exact / f"{source}-h{seed}",
+                data="merged",
+                seed=seed,
+                scores=[mine],
+                method="hipode",
+                source=source,
+            )
+            write_run(
+                exact / f"{source}-n{seed}",
+                data="source",
+                seed=seed,
+                scores=[base_score],
+                source=source,
+            )
+    done = find_runs([exact])
+    mine, theirs = (
+        [r for r in done if "-h" in r.path.name],
+        [r for r in done if "-n" in r.path.name],
+    )
+    result = improvement_within_sources(mine, theirs, "last", 1, 4000, 0)
+    assert result["probability"] == pytest.approx(6 / 8)
+    assert result["ci"] == pytest.approx([0.5, 1.0])
+    # ties count one half: a 3.5 of 4, b 0.5 of 1
+    ties = tmp_path / "ties"
+    for source, arm_scores, base_scores in (
+        ("a", (50.0, 60.0), (50.0, 40.0)),
+        ("b", (10.0,), (10.0,)),
+    ):
+        for seed, score in enumerate(arm_scores):
+            write_run(
+                ties / f"{source}-h{seed}",
+                data="merged",
+                seed=seed,
+                scores=[score],
+                method="hipode",
+                source=source,
+            )
+        for seed, score in enumerate(base_scores):
+            write_run(
+                ties / f"{source}-n{seed}", data="source", seed=seed, scores=[score], source=source
+            )
+    done = find_runs([ties])
+    mine, theirs = (
+        [r for r in done if "-h" in r.path.name],
+        [r for r in done if "-n" in r.path.name],
+    )
+    tied = improvement_within_sources(mine, theirs, "last", 1, 500, 0)
+    assert tied == {"probability": pytest.approx(4 / 5), "ci": None, "sources": 2}
     # one run of the arm on a source: no spread to resample there
     lone = improvement_within_sources(arm[:1] + arm[3:], base, "last", 1, 500, 0)
     assert lone["ci"] is None and lone["sources"] == 2
