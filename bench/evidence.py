@@ -23,6 +23,7 @@ and the report pools sources as strata, each run paired with the baseline on its
     python bench/evidence.py report --by-source                        # one row per source
     python bench/evidence.py report --by-stage-one-seed                # one row per artifact
     python bench/evidence.py tables            # docs/evidence.md's marked tables from them
+    python bench/evidence.py sources           # which source folders this machine can extend
     python bench/evidence.py tables --check    # fails naming each table the reports contradict
 """
 
@@ -30,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import difflib
+import json
 import os
 import sys
 from pathlib import Path
@@ -62,8 +64,33 @@ def source_folder(task_name: str) -> Path:
     from hipode_pipeline.sweep.plan import ensure_source
     from hipode_pipeline.tasks import get_task
 
+    print(source_note(task_name), file=sys.stderr)
     _, info = ensure_source(get_task(task_name), None, datasets_root(), show_progress=True)
     return RUNS / f"{task_name}-{info.sha256[:8]}"
+
+
+def source_note(task_name: str) -> str:
+    """Which committed source folders of the task were built on this machine's CPU."""
+    from evidence_sources import extendable, read_sources
+
+    from hipode_pipeline.machine import cpu_name
+
+    return extendable(read_sources(RUNS, budget, cpu_name()), task_name)
+
+
+def sources(args: argparse.Namespace) -> int:
+    """The committed source folders, the CPUs their runs record and whether this one matches."""
+    from evidence_sources import markdown, read_sources
+
+    from hipode_pipeline.machine import cpu_name
+
+    this_cpu = cpu_name()
+    entries = read_sources(RUNS, budget, this_cpu)
+    if args.json:
+        print(json.dumps({"this_cpu": this_cpu, "sources": entries}, indent=2))
+    else:
+        print(markdown(entries, this_cpu), end="")
+    return 0
 
 
 def sweep(args: argparse.Namespace) -> list[str]:
@@ -173,6 +200,10 @@ def main_parser() -> argparse.ArgumentParser:
     )
     docs = commands.add_parser("tables", help="docs/evidence.md's marked tables from the reports.")
     docs.add_argument("--check", action="store_true", help="Change nothing; fail if they differ.")
+    listing = commands.add_parser(
+        "sources", help="The source folders, the CPUs their runs record, and this machine's."
+    )
+    listing.add_argument("--json", action="store_true", help="JSON instead of a table.")
     return parser
 
 
@@ -182,6 +213,8 @@ def main(argv: list[str] | None = None) -> None:
     sys.path.insert(0, str(REPO))
     if args.command == "tables":
         sys.exit(tables(args))
+    if args.command == "sources":
+        sys.exit(sources(args))
     from hipode_pipeline.cli import app
 
     app(sweep(args) if args.command == "sweep" else report(args))

@@ -276,3 +276,52 @@ def test_a_marker_without_its_table_right_below_is_refused(below, monkeypatch):
     marker = "<!-- evidence-rows: groups report=pooled learner=td3bc -->"
     with pytest.raises(evidence_tables.TableError, match="separator on the two lines"):
         regenerate(f"text\n{marker}{below}")
+
+
+def test_sources_say_which_folders_this_cpu_can_extend(tmp_path):
+    import evidence_sources
+
+    this_cpu = "AMD EPYC (family 25, model 17, stepping 1)"
+
+    def run(folder: str, arm: str, learner: str, steps: int, cpu: str | None):
+        path = tmp_path / folder / "walker2d-m-r" / arm / f"{learner}-seed0"
+        path.mkdir(parents=True)
+        record = {
+            "task": "walker2d-m-r",
+            "learner": learner,
+            "steps": steps,
+            "data_identity": {"source_sha256": folder.split("-")[-1] + "0" * 56},
+            **({} if cpu is None else {"cpu": cpu}),
+        }
+        (path / "scores.json").write_text(json.dumps(record))
+
+    run("walker2d-m-r-aaaaaaaa", "eta0", "iql", 200_000, this_cpu)
+    run("walker2d-m-r-aaaaaaaa", "hipode", "iql", 100_000, this_cpu)  # not at the budget
+    run("walker2d-m-r-bbbbbbbb", "eta0", "td3bc", 200_000, "AMD EPYC")
+    run("walker2d-m-r-cccccccc", "eta0", "td3bc", 200_000, "Intel(R) Xeon(R) Processor")
+    run("walker2d-m-r-cccccccc", "hipode", "td3bc", 200_000, None)
+    (tmp_path / "walker2d-m-r-dddddddd").mkdir()  # nothing finished: says nothing
+    entries = evidence_sources.read_sources(tmp_path, evidence.budget, this_cpu)
+    by_folder = {e["folder"]: e for e in entries}
+    assert list(by_folder) == [
+        "walker2d-m-r-aaaaaaaa",
+        "walker2d-m-r-bbbbbbbb",
+        "walker2d-m-r-cccccccc",
+    ]
+    same, brand, other = by_folder.values()
+    assert same["match"] == evidence_sources.SAME and same["runs_at_budget"] == {"iql": 1}
+    assert same["cpus"] == {this_cpu: 2} and same["source_sha256"].startswith("aaaaaaaa")
+    assert brand["match"] == evidence_sources.BRAND_ONLY
+    assert other["match"] == evidence_sources.OTHER
+    assert other["cpus"] == {"Intel(R) Xeon(R) Processor": 1, "not recorded": 1}
+    assert "walker2d-m-r-aaaaaaaa" in evidence_sources.extendable(entries, "walker2d-m-r")
+    without_mine = [same_or_not for same_or_not in entries if same_or_not is not same]
+    assert "may or may not" in evidence_sources.extendable(without_mine, "walker2d-m-r")
+    assert "starts a folder" in evidence_sources.extendable([other], "walker2d-m-r")
+    table = evidence_sources.markdown(entries, this_cpu)
+    assert f"This machine: {this_cpu}" in table
+    assert "| walker2d-m-r-bbbbbbbb | walker2d-m-r | AMD EPYC (1) | td3bc 1 |" in table
+    # another generation of the same brand is another CPU
+    assert evidence_sources.cpu_match("AMD EPYC (family 25, model 1, stepping 1)", this_cpu) == (
+        evidence_sources.OTHER
+    )
