@@ -316,24 +316,34 @@ def test_a_group_spanning_sources_resamples_runs_within_each_source(tmp_path):
     assert (tmp_path / "curves.png").read_bytes()[:4] == b"\x89PNG"
 
 
+def write_arm_and_baseline(folder: Path, scores: dict[str, tuple]) -> tuple[list, list]:
+    """Per source, HIPODE runs ("<source>-h<seed>") and η = 0 runs ("<source>-n<seed>") with
+    the given final scores; returns the arm's runs and the baseline's, as read back."""
+    for source, (arm, baseline) in scores.items():
+        for name, data, method, finals in (
+            ("h", "merged", "hipode", arm),
+            ("n", "source", None, baseline),
+        ):
+            for seed, final in enumerate(finals):
+                write_run(
+                    folder / f"{source}-{name}{seed}",
+                    data=data,
+                    seed=seed,
+                    scores=[final],
+                    method=method,
+                    source=source,
+                )
+    found = find_runs([folder])
+    return [r for r in found if "-h" in r.path.name], [r for r in found if "-n" in r.path.name]
+
+
 def test_probability_of_improvement_compares_runs_of_the_same_source_only(tmp_path):
     # the arm beats the baseline on both sources, but source b scores far below source a:
     # comparing across sources would count b's arm runs as losing to a's baseline runs
     runs = tmp_path / "runs"
-    scores = {"a": ([50.0, 52.0], [60.0, 62.0]), "b": ([10.0, 12.0], [20.0, 22.0])}
-    for source, (baseline, arm) in scores.items():
-        for seed, (base, mine) in enumerate(zip(baseline, arm, strict=True)):
-            write_run(
-                runs / f"{source}-n{seed}", data="source", seed=seed, scores=[base], source=source
-            )
-            write_run(
-                runs / f"{source}-h{seed}",
-                data="merged",
-                seed=seed,
-                scores=[mine],
-                method="hipode",
-                source=source,
-            )
+    write_arm_and_baseline(
+        runs, {"a": ([60.0, 62.0], [50.0, 52.0]), "b": ([20.0, 22.0], [10.0, 12.0])}
+    )
     # a source only the baseline ran is left out: there is nothing of the arm's to compare
     write_run(runs / "c-n0", data="source", seed=0, scores=[90.0], source="c")
     report = build_report(find_runs([runs]), by=POOLED, compare=("augmentation", "none"), reps=500)
@@ -349,73 +359,32 @@ def test_probability_of_improvement_compares_runs_of_the_same_source_only(tmp_pa
     )
     assert pooled["probability"] == pytest.approx(12 / 16)  # what ignoring the sources gives
     # the sources are strata: each resamples its own runs, so a's spread shows in the interval
-    write_run(runs / "a-h2", data="merged", seed=2, scores=[49.0], method="hipode", source="a")
-    write_run(runs / "a-n2", data="source", seed=2, scores=[51.0], source="a")
-    found = find_runs([runs])
-    arm = [r for r in found if r.path.name.startswith(("a-h", "b-h"))]
-    base = [r for r in found if r.path.name.startswith(("a-n", "b-n"))]
+    arm, base = write_arm_and_baseline(
+        tmp_path / "spread",
+        {"a": ([60.0, 62.0, 49.0], [50.0, 52.0, 51.0]), "b": ([20.0, 22.0], [10.0, 12.0])},
+    )
     # a: 60 and 62 beat all three, 49 none: 6 of 9; b: 4 of 4
     spread = improvement_within_sources(arm, base, "last", 1, 2000, 0)
     assert spread["probability"] == pytest.approx(10 / 13) and spread["sources"] == 2
     assert spread["ci"][0] < 10 / 13 < spread["ci"][1] == pytest.approx(1.0)
+    # one run of the arm on a source: no spread to resample there
+    lone = improvement_within_sources(arm[:1] + arm[3:], base, "last", 1, 500, 0)
+    assert lone["ci"] is None and lone["sources"] == 2
+    assert improvement_within_sources(arm[:1], base[3:], "last", 1, 500, 0) is None
     # exact: a's arm runs 60 and 49 beat both baseline runs or neither, b's always win, so a
     # resample within the sources reads 4, 6 or 8 of 8 (49 twice: one time in four)
-    exact = tmp_path / "exact"
-    for source, pairs in (("a", ((60.0, 50.0), (49.0, 52.0))), ("b", ((20.0, 10.0), (22.0, 12.0)))):
-        for seed, (mine, base_score) in enumerate(pairs):
-            write_run(
-                exact / f"{source}-h{seed}",
-                data="merged",
-                seed=seed,
-                scores=[mine],
-                method="hipode",
-                source=source,
-            )
-            write_run(
-                exact / f"{source}-n{seed}",
-                data="source",
-                seed=seed,
-                scores=[base_score],
-                source=source,
-            )
-    done = find_runs([exact])
-    mine, theirs = (
-        [r for r in done if "-h" in r.path.name],
-        [r for r in done if "-n" in r.path.name],
+    mine, theirs = write_arm_and_baseline(
+        tmp_path / "exact", {"a": ([60.0, 49.0], [50.0, 52.0]), "b": ([20.0, 22.0], [10.0, 12.0])}
     )
     result = improvement_within_sources(mine, theirs, "last", 1, 4000, 0)
     assert result["probability"] == pytest.approx(6 / 8)
     assert result["ci"] == pytest.approx([0.5, 1.0])
     # ties count one half: a 3.5 of 4, b 0.5 of 1
-    ties = tmp_path / "ties"
-    for source, arm_scores, base_scores in (
-        ("a", (50.0, 60.0), (50.0, 40.0)),
-        ("b", (10.0,), (10.0,)),
-    ):
-        for seed, score in enumerate(arm_scores):
-            write_run(
-                ties / f"{source}-h{seed}",
-                data="merged",
-                seed=seed,
-                scores=[score],
-                method="hipode",
-                source=source,
-            )
-        for seed, score in enumerate(base_scores):
-            write_run(
-                ties / f"{source}-n{seed}", data="source", seed=seed, scores=[score], source=source
-            )
-    done = find_runs([ties])
-    mine, theirs = (
-        [r for r in done if "-h" in r.path.name],
-        [r for r in done if "-n" in r.path.name],
+    mine, theirs = write_arm_and_baseline(
+        tmp_path / "ties", {"a": ([50.0, 60.0], [50.0, 40.0]), "b": ([10.0], [10.0])}
     )
     tied = improvement_within_sources(mine, theirs, "last", 1, 500, 0)
     assert tied == {"probability": pytest.approx(4 / 5), "ci": None, "sources": 2}
-    # one run of the arm on a source: no spread to resample there
-    lone = improvement_within_sources(arm[:1] + arm[3:], base, "last", 1, 500, 0)
-    assert lone["ci"] is None and lone["sources"] == 2
-    assert improvement_within_sources(arm[:1], base[3:], "last", 1, 500, 0) is None
 
 
 def test_one_run_or_one_pair_is_reported_without_an_interval(tmp_path):
