@@ -407,8 +407,7 @@ def paired_difference(cells: dict[tuple, float], reps: int, seed: int) -> dict[s
     if not cells:
         return None
     diffs = np.array(list(cells.values()))
-    per_source = Counter(key[0] for key in cells)
-    resamplable = min(per_source.values()) >= MIN_FOR_INTERVAL
+    resamplable = has_spread([key[0] for key in cells])
     means = crossed_bootstrap(cells, reps, seed) if resamplable else None
     return {
         "mean": float(diffs.mean()),
