@@ -25,6 +25,12 @@ runs' own source under the dataset root (its sha256 is checked against the runs'
 finished run whose checkpoint is gone keeps its row from the previous report (same number of
 updates, source and artifact), with the date it was probed: its falls columns always, its
 policy-value columns under the same --states and --horizon only.
+
+And, for IQL runs with synthetic data, how much its actor learns from that data: IQL's policy
+regresses onto each batch row's action weighted by exp(β · (Q(s, a) − V(s))) (capped), so the
+mean weight on the run's synthetic rows against its source rows, at the batch share the run
+trained with, gives the synthetic rows' share of the actor's regression. The artifact must be
+the run's own (its content checksum is checked against the run's record).
 """
 
 from __future__ import annotations
@@ -105,21 +111,26 @@ def learner(state: dict, obs_dim: int, act_dim: int, origin: str):
     return model
 
 
-def in_reward_units(model, evaluate, observations, actions=None):
+def per_row(model, evaluate, observations, actions=None):
     """`evaluate(normalized states, actions)` -> one value per row, for every row, on the CPU,
-    in chunks (bounded memory on a large source), divided by the learner's reward scale so
-    that a learner that scaled its rewards reads in the data's units. Both arguments come as
-    one-seed (1, n, ·) tensors; actions None where `evaluate` needs none."""
+    in chunks (bounded memory on a large source), in the learner's own units. Both arguments
+    come as one-seed (1, n, ·) tensors; actions None where `evaluate` needs none."""
     import torch
 
-    scale = float(getattr(model, "reward_scale", 1.0))
     values = []
     with torch.no_grad():
         for start in range(0, len(observations), CHUNK):
             obs = model.normalize(torch.as_tensor(observations[start : start + CHUNK]).unsqueeze(0))
             act = None if actions is None else actions[start : start + CHUNK]
             values.append(evaluate(obs, None if act is None else torch.as_tensor(act).unsqueeze(0)))
-    return torch.cat(values).numpy() / scale
+    return torch.cat(values).numpy()
+
+
+def in_reward_units(model, evaluate, observations, actions=None):
+    """`per_row`, divided by the learner's reward scale so that a learner that scaled its
+    rewards reads in the data's units."""
+    scale = float(getattr(model, "reward_scale", 1.0))
+    return per_row(model, evaluate, observations, actions) / scale
 
 
 def critic_values(model, observations, actions):
@@ -153,6 +164,61 @@ POLICY_KEYS = (
 )
 
 
+# the columns of the actor-weight check (IQL runs with synthetic data)
+ACTOR_KEYS = (
+    "weight_source",
+    "weight_synthetic",
+    "capped_source",
+    "capped_synthetic",
+    "synthetic_batch_share",
+    "synthetic_actor_share",
+)
+
+
+def advantage_weights(model, observations, actions):
+    """IQL's actor weight exp(β · (Q_target(s, a) − V(s))), capped as in training, per row; in
+    the learner's own (scaled) reward units, as it trained."""
+    import torch
+
+    config = model.config
+
+    def weights(obs, act):
+        advantage = model.critic_target(obs, act).amin(1)[0] - model.value(obs)[0].squeeze(-1)
+        return torch.exp(config.beta * advantage).clamp(max=config.exp_adv_max)
+
+    return per_row(model, weights, observations, actions)
+
+
+def synthetic_batch_share(config: dict) -> float:
+    """The share of synthetic rows in the run's batches: round(η · batch) of the batch when
+    "mixed", their share of the union when "union"."""
+    n_real, n_synthetic = int(config["n_real"]), int(config["n_synthetic"])
+    if config.get("mixing", "mixed") == "union":
+        return n_synthetic / (n_real + n_synthetic)
+    batch = int(config["batch_size"])
+    return round(float(config["eta"]) * batch) / batch
+
+
+def actor_weight_check(model, source, synthetic, config: dict) -> dict:
+    """The mean actor weight on the source's and the run's synthetic rows, the share of each
+    weight at the cap, and the synthetic rows' share of the actor's regression at the run's
+    batch share of them."""
+    on_source = advantage_weights(model, source.observations, source.actions)
+    on_synthetic = advantage_weights(model, synthetic.observations, synthetic.actions)
+    share = synthetic_batch_share(config)
+    cap = float(model.config.exp_adv_max)
+    pulled = share * float(on_synthetic.mean())
+    values = (
+        float(on_source.mean()),
+        float(on_synthetic.mean()),
+        float((on_source >= cap).mean()),
+        float((on_synthetic >= cap).mean()),
+        share,
+        pulled / (pulled + (1.0 - share) * float(on_source.mean())),
+    )
+    return dict(zip(ACTOR_KEYS, values, strict=True))
+
+
 def policy_value_check(model, data, env_id: str, rows, horizon: int, discount: float) -> dict:
     """Q(s, π(s)) at the source rows `rows` against π's discounted return from s."""
     from hipode_pipeline.simulator import policy_returns
@@ -177,10 +243,17 @@ def policy_value_check(model, data, env_id: str, rows, horizon: int, discount: f
 
 
 def probe(
-    folder: Path, config: dict, sources: dict, states: int = STATES, horizon: int = HORIZON
+    folder: Path,
+    config: dict,
+    sources: dict,
+    states: int = STATES,
+    horizon: int = HORIZON,
+    artifacts: dict | None = None,
 ) -> dict:
     """One run's row: `config` is its config.json, `sources` maps source ids to loaded sources;
-    `states` source states (0: none) at which Q is checked against the policy's return."""
+    `states` source states (0: none) at which Q is checked against the policy's return;
+    `artifacts` maps artifact checksums to their synthetic rows (an IQL run trained on one gets
+    the actor-weight check)."""
     from hipode_pipeline.errors import DataFormatError
     from hipode_pipeline.files import display_path
     from hipode_pipeline.run_folder import load_checkpoint
@@ -219,6 +292,9 @@ def probe(
         env_id = config["env_id"]
         starts = start_states(source, env_id, states)
         check = policy_value_check(model, source, env_id, starts, horizon, discount)
+    synthetic = (artifacts or {}).get(config.get("artifact_checksum"))
+    if state["learner"] == "iql" and synthetic is not None and trains_on_synthetic(config):
+        check |= actor_weight_check(model, source, synthetic, config)
     return {
         "run": display_path(folder),
         "source_sha256": config.get("source_sha256"),
@@ -233,6 +309,36 @@ def probe(
         **fall_values,
         **check,
     }
+
+
+def trains_on_synthetic(config: dict) -> bool:
+    """Whether the run drew synthetic rows into its batches."""
+    if not int(config.get("n_synthetic") or 0):
+        return False
+    return config.get("mixing", "mixed") == "union" or float(config.get("eta") or 0) > 0
+
+
+def run_artifacts(configs: dict) -> dict:
+    """The synthetic rows of every run that trained on an artifact, by content checksum, each
+    read and verified once and checked to be the artifact the run recorded."""
+    from hipode_pipeline.artifact import read_artifact
+    from hipode_pipeline.errors import DataFormatError
+
+    artifacts = {}
+    for folder, config in configs.items():
+        checksum = config.get("artifact_checksum")
+        if not trains_on_synthetic(config) or checksum in artifacts:
+            continue
+        artifact = read_artifact(REPO / config["artifact_path"])
+        if artifact.manifest.get("checksum") != checksum:
+            raise DataFormatError(
+                artifact.path,
+                "checksum",
+                f"{checksum} (the artifact that {folder / 'config.json'} trained on)",
+                artifact.manifest.get("checksum"),
+            )
+        artifacts[checksum] = artifact.transitions
+    return artifacts
 
 
 def read_record(path: Path, field: str, expected: str) -> dict:
@@ -313,7 +419,8 @@ def table(rows: list[dict]) -> str:
         text += "".join(
             f"| {r['arm']} | {r['seed']} | {r['step']:,} | {r['q_mean']:.1f} |\n" for r in without
         )
-    return text + policy_table([r for r in rows if "q_policy" in r])
+    text += policy_table([r for r in rows if "q_policy" in r])
+    return text + actor_table([r for r in rows if "synthetic_actor_share" in r])
 
 
 def falls_table(rows: list[dict]) -> str:
@@ -353,6 +460,25 @@ def policy_table(rows: list[dict]) -> str:
     )
 
 
+def actor_table(rows: list[dict]) -> str:
+    """IQL's actor weights on source and synthetic rows per run; empty when no row has them."""
+    if not rows:
+        return ""
+    head = (
+        "\nIQL's actor weights exp(β · (Q − V)) on the source's rows and on the run's synthetic "
+        "rows, and the synthetic rows' share of the actor's regression at their share of the "
+        "batch:\n\n| arm | seed | mean weight, source | mean weight, synthetic | at the cap, "
+        "source / synthetic | synthetic share of the batch | synthetic share of the actor's "
+        "regression |\n|---|---|---|---|---|---|---|\n"
+    )
+    return head + "".join(
+        f"| {r['arm']} | {r['seed']} | {r['weight_source']:.1f} | {r['weight_synthetic']:.1f} | "
+        f"{100 * r['capped_source']:.1f} % / {100 * r['capped_synthetic']:.1f} % | "
+        f"{100 * r['synthetic_batch_share']:.1f} % | {100 * r['synthetic_actor_share']:.1f} % |\n"
+        for r in rows
+    )
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("folder", type=Path, help="A sweep folder (bench/evidence/runs/<...>).")
@@ -380,10 +506,13 @@ def main(argv: list[str] | None = None) -> None:
     }
     ids = {config["source_id"] for config in configs.values()}
     sources = {i: load_source(i, datasets_root()) for i in ids}
+    artifacts = run_artifacts(configs) if args.learner == "iql" else {}
     start = time.time()
     now = time.strftime("%Y-%m-%d %H:%M", time.gmtime())
     with torch_threads(1):
-        rows = [probe(f, configs[f], sources, args.states, args.horizon) for f in folders]
+        rows = [
+            probe(f, configs[f], sources, args.states, args.horizon, artifacts) for f in folders
+        ]
     rows = [{**row, "probed_utc": now} for row in rows]
     out = root / "report" / args.learner
     previous = out / "critic_probe.json"

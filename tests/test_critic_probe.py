@@ -274,3 +274,95 @@ def test_rows_of_runs_whose_checkpoints_are_gone_are_carried_with_their_probe_da
     report.write_text("[not json")
     with pytest.raises(DataFormatError, match="unreadable JSON"):
         critic_probe.previous_report(report)
+
+
+def iql_with_known_advantage(data: Transitions, q: float) -> IQL:
+    """An IQL learner whose target critics are the constant `q` and whose value is
+    relu(first normalized state dimension): its advantage at each row is known in closed form."""
+    model = IQL(data.obs_dim, data.act_dim, IQLConfig(), seed=3)
+    model.fit_statistics(data)
+    with torch.no_grad():
+        model.critic_target.weights[-1].zero_()
+        model.critic_target.biases[-1].fill_(q)
+        for weight, bias in zip(model.value.weights, model.value.biases, strict=True):
+            weight.zero_()
+            bias.zero_()
+            weight[:, 0, 0] = 1.0  # feature 0 of the state passes through every layer
+    return model
+
+
+def write_synthetic(path: Path, synthetic: Transitions) -> dict:
+    """`synthetic` as an artifact file, with the diagnostics the contract asks for."""
+    from hipode_pipeline.artifact import write_artifact
+
+    n = len(synthetic)
+    diagnostics = {
+        "dynamics_error": np.zeros(n, np.float32),
+        "value": np.zeros(n, np.float32),
+        "source_index": np.arange(n),
+    }
+    return write_artifact(path, synthetic, diagnostics, {})
+
+
+def test_iql_actor_weights_are_the_capped_advantage_and_the_synthetic_share_reweights_the_batch(
+    tmp_path,
+):
+    data = source()
+    synthetic = source(seed=1)
+    synthetic.observations[:, 0] = -50.0  # normalized far below zero: V = 0 on every synthetic row
+    model = iql_with_known_advantage(data, q=2.0)
+    folder = tmp_path / "walker2d-m-r" / "hipode" / "iql-seed3"
+    config = finished_run(folder, data, "ab" * 32, 2.0, 2.0, model=model)
+    # finished_run set the online critic; the actor weights read the target critic
+    assert float(model.critic_target.biases[-1].min()) == 2.0
+    artifact = tmp_path / "synthetic.hdf5"
+    stored = write_synthetic(artifact, synthetic)
+    config |= {
+        "artifact_path": str(artifact),
+        "artifact_checksum": stored["checksum"],
+        "n_real": len(data),
+        "n_synthetic": len(synthetic),
+        "eta": 0.2,
+        "batch_size": 256,
+        "mixing": "mixed",
+    }
+    (folder / "config.json").write_text(json.dumps(config))
+    artifacts = critic_probe.run_artifacts({folder: config})
+    sources = {"local/hopper/medium-replay-v0": (data, SimpleNamespace(sha256="ab" * 32))}
+    row = critic_probe.probe(folder, config, sources, states=0, artifacts=artifacts)
+
+    normalized = model.normalize(torch.as_tensor(data.observations)).numpy()
+    expected = np.minimum(np.exp(3.0 * (2.0 - np.maximum(normalized[:, 0], 0.0))), 100.0)
+    assert 0 < (expected >= 100.0).mean() < 1  # some source rows at the cap, some below
+    assert row["weight_source"] == pytest.approx(expected.mean(), rel=1e-5)
+    assert row["capped_source"] == pytest.approx((expected >= 100.0).mean())
+    assert row["weight_synthetic"] == pytest.approx(100.0)  # exp(3 · 2) is past the cap
+    assert row["capped_synthetic"] == 1.0
+    share = 51 / 256  # round(0.2 · 256) synthetic rows per batch
+    assert row["synthetic_batch_share"] == share
+    pulled = share * 100.0
+    assert row["synthetic_actor_share"] == pytest.approx(
+        pulled / (pulled + (1 - share) * expected.mean()), rel=1e-5
+    )
+    assert critic_probe.actor_table([row]) in critic_probe.table([row])
+    assert "| hipode | 3 |" in critic_probe.actor_table([row])
+
+    union = config | {"mixing": "union"}
+    assert critic_probe.synthetic_batch_share(union) == 60 / 120
+    eta0 = config | {"eta": 0.0, "n_synthetic": 0}
+    assert "synthetic_actor_share" not in critic_probe.probe(
+        folder, eta0, sources, states=0, artifacts=artifacts
+    )
+
+
+def test_an_artifact_other_than_the_runs_own_is_refused(tmp_path):
+    artifact = tmp_path / "synthetic.hdf5"
+    write_synthetic(artifact, source(seed=1))
+    config = {
+        "artifact_path": str(artifact),
+        "artifact_checksum": "sha256:" + "0" * 64,
+        "n_synthetic": 60,
+        "eta": 0.2,
+    }
+    with pytest.raises(DataFormatError, match="checksum"):
+        critic_probe.run_artifacts({tmp_path / "iql-seed0": config})
