@@ -190,13 +190,17 @@ def advantage_weights(model, observations, actions):
 
 
 def synthetic_batch_share(config: dict) -> float:
-    """The share of synthetic rows in the run's batches: round(η · batch) of the batch when
-    "mixed", their share of the union when "union"."""
-    n_real, n_synthetic = int(config["n_real"]), int(config["n_synthetic"])
-    if config.get("mixing", "mixed") == "union":
-        return n_synthetic / (n_real + n_synthetic)
-    batch = int(config["batch_size"])
-    return round(float(config["eta"]) * batch) / batch
+    """The share of synthetic rows in the run's batches, from its record, as its sampler drew
+    them (hipode_pipeline.replay)."""
+    from hipode_pipeline.replay import synthetic_batch_share as share
+
+    return share(
+        float(config.get("eta") or 0),
+        config.get("mixing", "mixed"),
+        int(config["n_real"]),
+        int(config.get("n_synthetic") or 0),
+        int(config["batch_size"]),
+    )
 
 
 def actor_weight_check(model, source, synthetic, config: dict) -> dict:
@@ -312,10 +316,11 @@ def probe(
 
 
 def trains_on_synthetic(config: dict) -> bool:
-    """Whether the run drew synthetic rows into its batches."""
-    if not int(config.get("n_synthetic") or 0):
-        return False
-    return config.get("mixing", "mixed") == "union" or float(config.get("eta") or 0) > 0
+    """Whether the run drew synthetic rows into its batches (hipode_pipeline.replay's rule)."""
+    from hipode_pipeline.replay import uses_synthetic
+
+    eta, mixing = float(config.get("eta") or 0), config.get("mixing", "mixed")
+    return uses_synthetic(int(config.get("n_synthetic") or 0), eta, mixing)
 
 
 def run_artifacts(configs: dict) -> dict:

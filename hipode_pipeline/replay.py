@@ -45,6 +45,28 @@ def _pack(t: Transitions) -> np.ndarray:
     )
 
 
+def uses_synthetic(n_synthetic: int, eta: float, mixing: Mixing) -> bool:
+    """Whether batches draw synthetic rows: some exist, and "union" or eta > 0 asks for them."""
+    return n_synthetic > 0 and (mixing == "union" or eta > 0)
+
+
+def synthetic_batch_count(eta: float, mixing: Mixing, n_synthetic: int, batch: int) -> int:
+    """Synthetic rows in every batch of `batch` rows under "mixed" (random under "union": 0)."""
+    return round(eta * batch) if mixing == "mixed" and n_synthetic else 0
+
+
+def synthetic_batch_share(
+    eta: float, mixing: Mixing, n_real: int, n_synthetic: int, batch: int
+) -> float:
+    """The share of synthetic rows in a batch: exactly round(eta·B)/B under "mixed", their
+    share of the union in expectation under "union"."""
+    if not uses_synthetic(n_synthetic, eta, mixing):
+        return 0.0
+    if mixing == "union":
+        return n_synthetic / (n_real + n_synthetic)
+    return synthetic_batch_count(eta, mixing, n_synthetic, batch) / batch
+
+
 class MixedReplay:
     """Sampler over real (source) and synthetic transitions.
 
@@ -69,9 +91,7 @@ class MixedReplay:
             raise HipodeError(f"mixing: expected one of {MIXING_MODES}, found {mixing!r}")
         if not 0.0 <= eta <= 1.0:
             raise HipodeError(f"eta (synthetic rate): expected a number in [0, 1], found {eta}")
-        use_synthetic = (
-            synthetic is not None and len(synthetic) > 0 and (mixing == "union" or eta > 0)
-        )
+        use_synthetic = synthetic is not None and uses_synthetic(len(synthetic), eta, mixing)
         if mixing == "mixed" and eta > 0 and not use_synthetic:
             raise HipodeError(
                 f"eta = {eta} asks for synthetic rows but no synthetic transitions were given"
@@ -102,7 +122,7 @@ class MixedReplay:
 
     def synthetic_count(self, batch_size: int) -> int:
         """Synthetic rows in every batch of this size under "mixed" (random under "union")."""
-        return round(self.eta * batch_size) if self.mixing == "mixed" and self.n_synthetic else 0
+        return synthetic_batch_count(self.eta, self.mixing, self.n_synthetic, batch_size)
 
     def _indices(self, g: torch.Generator, batch_size: int) -> torch.Tensor:
         dev = self.device
