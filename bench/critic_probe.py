@@ -189,18 +189,22 @@ def advantage_weights(model, observations, actions):
     return per_row(model, weights, observations, actions)
 
 
-def synthetic_batch_share(config: dict) -> float:
-    """The share of synthetic rows in the run's batches, from its record, as its sampler drew
-    them (hipode_pipeline.replay)."""
-    from hipode_pipeline.replay import synthetic_batch_share as share
-
-    return share(
+def replay_settings(config: dict) -> tuple[float, str, int]:
+    """η, mixing and the synthetic row count a run's sampler was built with, from its record."""
+    return (
         float(config.get("eta") or 0),
         config.get("mixing", "mixed"),
-        int(config["n_real"]),
         int(config.get("n_synthetic") or 0),
-        int(config["batch_size"]),
     )
+
+
+def synthetic_batch_share(config: dict) -> float:
+    """The share of synthetic rows in the run's batches, as its sampler drew them."""
+    from hipode_pipeline import replay
+
+    eta, mixing, n_synthetic = replay_settings(config)
+    n_real, batch = int(config["n_real"]), int(config["batch_size"])
+    return replay.synthetic_batch_share(eta, mixing, n_real, n_synthetic, batch)
 
 
 def actor_weight_check(model, source, synthetic, config: dict) -> dict:
@@ -319,8 +323,7 @@ def trains_on_synthetic(config: dict) -> bool:
     """Whether the run drew synthetic rows into its batches (hipode_pipeline.replay's rule)."""
     from hipode_pipeline.replay import uses_synthetic
 
-    eta, mixing = float(config.get("eta") or 0), config.get("mixing", "mixed")
-    return uses_synthetic(int(config.get("n_synthetic") or 0), eta, mixing)
+    return uses_synthetic(*replay_settings(config))
 
 
 def run_artifacts(configs: dict) -> dict:

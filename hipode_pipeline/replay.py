@@ -45,7 +45,7 @@ def _pack(t: Transitions) -> np.ndarray:
     )
 
 
-def uses_synthetic(n_synthetic: int, eta: float, mixing: Mixing) -> bool:
+def uses_synthetic(eta: float, mixing: Mixing, n_synthetic: int) -> bool:
     """Whether batches draw synthetic rows: some exist, and "union" or eta > 0 asks for them."""
     return n_synthetic > 0 and (mixing == "union" or eta > 0)
 
@@ -60,7 +60,7 @@ def synthetic_batch_share(
 ) -> float:
     """The share of synthetic rows in a batch: exactly round(eta·B)/B under "mixed", their
     share of the union in expectation under "union"."""
-    if not uses_synthetic(n_synthetic, eta, mixing):
+    if not uses_synthetic(eta, mixing, n_synthetic):
         return 0.0
     if mixing == "union":
         return n_synthetic / (n_real + n_synthetic)
@@ -91,7 +91,7 @@ class MixedReplay:
             raise HipodeError(f"mixing: expected one of {MIXING_MODES}, found {mixing!r}")
         if not 0.0 <= eta <= 1.0:
             raise HipodeError(f"eta (synthetic rate): expected a number in [0, 1], found {eta}")
-        use_synthetic = synthetic is not None and uses_synthetic(len(synthetic), eta, mixing)
+        use_synthetic = synthetic is not None and uses_synthetic(eta, mixing, len(synthetic))
         if mixing == "mixed" and eta > 0 and not use_synthetic:
             raise HipodeError(
                 f"eta = {eta} asks for synthetic rows but no synthetic transitions were given"
