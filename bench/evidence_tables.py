@@ -251,10 +251,15 @@ def authenticity_rows(runs: Path, read: ReportReader, params: dict[str, str]) ->
         )
     rows = [row(["source", "", f"{source['reward_mean']:.3f}", terminal_text(source)] + [""] * 3)]
     arms = [a for a in quality["arms"][task] if a["learner"] == params["learner"]]
+    trained = {
+        r["arm"] for r in quality["runs"] if (r["task"], r["learner"]) == (task, params["learner"])
+    }
     for arm in sorted(arms, key=lambda a: rank(ARM_ORDER, a["name"])):
         if arm["data"] == "source":
             continue
         synthetic, seed = arm["synthetic"], arm.get("stage_one_seed")
+        if synthetic is None and arm["name"] not in trained:
+            continue  # planned by a wider sweep, never built nor trained: nothing to describe
         if synthetic is None or seed is None:
             missing = "synthetic" if synthetic is None else "stage_one_seed"
             raise TableError(

@@ -198,9 +198,11 @@ def test_authenticity_rows_put_the_source_beside_each_artifact_and_its_check(tmp
         arm("artifact-seed1", 1, 3.0, 3.0, 0, {"seed": 1}),
         {**source_only, "learner": "iql"},
     ]
+    trained = ["hipode", "artifact-seed1", "model-rollouts-seed1"]
     quality = {
         "command": "hipode sweep --tasks hopper-m-r --artifact-seed 2 --artifact-seeds 1",
         "arms": {"hopper-m-r": arms},
+        "runs": [{"task": "hopper-m-r", "learner": "td3bc", "arm": name} for name in trained],
         "sources": {
             "hopper-m-r": {"sha256": SHA, "reward_mean": 2.881234, "terminal_fraction": 0.0061}
         },
@@ -235,10 +237,21 @@ def test_authenticity_rows_put_the_source_beside_each_artifact_and_its_check(tmp
     (results / "verify" / "hipode" / "artifact.hdf5.verify.json").unlink()
     refused("expected one .*hipode verify runs/hipode/artifact.hdf5")
     write_verify(results / "verify", "hipode", 0.01, 1.0, 0.2)
-    # an artifact arm whose synthetic row is missing is refused, not left out
+    # an arm a wider sweep planned but never built nor trained has nothing to describe
+    before = regenerate(table, Path("report"), Path("runs"))[0]
+    arms.append({**arm("model-rollouts-seed2", 2, 0, 0, 0), "synthetic": None})
+    write_quality()
+    assert regenerate(table, Path("report"), Path("runs"))[0] == before
+    # an artifact arm with runs whose synthetic row is missing is refused, not left out
     arms[2]["synthetic"] = None
     write_quality()
     refused("arm hipode has no synthetic; .*--report-only`")
+    quality["runs"].append(
+        {"task": "hopper-m-r", "learner": "td3bc", "arm": "model-rollouts-seed2"}
+    )
+    arms[2]["synthetic"] = arms[0]["synthetic"]
+    write_quality()
+    refused("arm model-rollouts-seed2 has no synthetic")
     # and so are a report of another source and one from before sources were recorded
     quality["sources"]["hopper-m-r"]["sha256"] = "ffff" + "0" * 60
     write_quality()
