@@ -3,7 +3,8 @@ make it resumable and readable, for our learners and for other libraries' alike:
 
     <out>/<task>/<learner>-<data>[-eta<η>]-<identity[:8]>-seed<seed>/   (or <out>/<task>/<name>/)
         config.json     what was run: task, data (source sha256, artifact path + checksum),
-                        learner settings, η, seeds, package versions
+                        learner settings, η, seeds, package versions (the latest session's),
+                        and each session's start step, stacked seeds, start time, CPU and commit
         metrics.jsonl   one line per log interval: step, each metric's mean over the interval,
                         updates/s, wall time, evaluation
         checkpoint.pt   weights, optimizers, step and RNG states (atomic; weights_only loadable)

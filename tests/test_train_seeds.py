@@ -80,10 +80,16 @@ def test_interrupted_seeds_resume_exactly_and_groups_form_by_step(tmp_path, tiny
             raise KeyboardInterrupt
         return real_evaluate(*args, **kwargs)
 
+    real_versions = train_module.package_versions
+    earlier_code = {"git_commit": "0" * 40, "git_modified": True}
     monkeypatch.setattr(train_module, "evaluate_policies", interrupt_on_second_evaluation)
+    monkeypatch.setattr(
+        train_module, "package_versions", lambda: {**real_versions(), **earlier_code}
+    )
     with pytest.raises(KeyboardInterrupt):
         train_seeds("hopper-m-r", seeds=[0, 1], out_dir=tmp_path / "b", **data)
     monkeypatch.setattr(train_module, "evaluate_policies", real_evaluate)
+    monkeypatch.setattr(train_module, "package_versions", real_versions)
     # seed 2 starts fresh beside seeds 0 and 1, which resume from step 10: two groups
     resumed = train_seeds("hopper-m-r", seeds=[0, 1, 2], out_dir=tmp_path / "b", **data)
     assert [r.resumed_from for r in resumed] == [10, 10, 0]
@@ -96,6 +102,10 @@ def test_interrupted_seeds_resume_exactly_and_groups_form_by_step(tmp_path, tiny
     iso_utc = r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\+00:00"
     assert all(re.fullmatch(iso_utc, s["started_utc"]) for s in sessions)
     assert all(s["cpu"] == cpu_name() for s in sessions)
+    # and from which code: the config's versions are the last session's only
+    versions = json.loads((Path(resumed[0].run_dir) / "config.json").read_text())["versions"]
+    code = [{key: s[key] for key in earlier_code} for s in sessions]
+    assert code == [earlier_code, {key: versions[key] for key in earlier_code}]
     assert sessions[0]["started_utc"] <= sessions[1]["started_utc"]
     scores = json.loads((Path(resumed[0].run_dir) / "scores.json").read_text())
     assert scores["finished_utc"] >= sessions[1]["started_utc"]
