@@ -564,7 +564,7 @@ def _train_group(
         seed_run.config["seeds_trained_together"] = seeds
         # every session of the run, with the seeds it was stacked with: float rounding depends
         # on the group, so a resume in another group continues close to, not exactly as, before
-        versions = seed_run.config.get("versions") or {}
+        versions = seed_run.config["versions"]
         seed_run.config["sessions"] = [
             *_previous_sessions(seed_run.run_dir, resume_step),
             {
@@ -573,8 +573,8 @@ def _train_group(
                 "started_utc": utc_now(),
                 "cpu": cpu_name(),
                 # config.json's versions are this session's; each session keeps its own code state
-                "git_commit": versions.get("git_commit"),
-                "git_modified": versions.get("git_modified"),
+                "git_commit": versions["git_commit"],
+                "git_modified": versions["git_modified"],
             },
         ]
         truncate_metrics(seed_run.run_dir / "metrics.jsonl", resume_step)
