@@ -22,6 +22,7 @@ and the report pools sources as strata, each run paired with the baseline on its
     python bench/evidence.py report                                    # the pooled tables
     python bench/evidence.py report --by-source                        # one row per source
     python bench/evidence.py report --by-stage-one-seed                # one row per artifact
+    python bench/evidence.py report --versus-rollouts      # hipode - the same models' rollouts
     python bench/evidence.py tables            # docs/evidence.md's marked tables from them
     python bench/evidence.py sources           # which source folders this machine can extend
     python bench/evidence.py tables --check    # fails naming each table the reports contradict
@@ -129,20 +130,24 @@ def sweep(args: argparse.Namespace) -> list[str]:
 
 
 def report(args: argparse.Namespace) -> list[str]:
-    by, out = "task,learner,augmentation", REPORT
+    by, out, baseline = "task,learner,augmentation", REPORT, "none"
+    if args.versus_rollouts:
+        # HIPODE against the rollouts of its own generators (same source, stage-one and training
+        # seed): whether the high-return selection, not the generators, makes a difference
+        out, baseline = REPORT / "versus-rollouts", "model-rollouts"
     if args.by_stage_one_seed:
         # per artifact: a source's artifacts differ by their stage-one seed alone
-        by, out = by + ",source_sha256,artifact_seed", REPORT / "by-stage-one-seed"
+        by, out = by + ",source_sha256,artifact_seed", out / "by-stage-one-seed"
     elif args.by_source:
         # per source: whether a finding holds on each dataset, not only pooled over them
-        by, out = by + ",source_sha256", REPORT / "by-source"
+        by, out = by + ",source_sha256", out / "by-source"
     return [
         "report",
         str(RUNS),
         "--by",
         by,
         "--compare",
-        "augmentation=none",
+        f"augmentation={baseline}",
         "--out",
         str(out),
         "--force",
@@ -197,6 +202,12 @@ def main_parser() -> argparse.ArgumentParser:
         "--by-stage-one-seed",
         action="store_true",
         help="One group per source and artifact (report/by-stage-one-seed/).",
+    )
+    pooled.add_argument(
+        "--versus-rollouts",
+        action="store_true",
+        help="Each arm against the plain model rollouts of the same generators instead of "
+        "eta0 (report/versus-rollouts/, with --by-source or --by-stage-one-seed below it).",
     )
     docs = commands.add_parser("tables", help="docs/evidence.md's marked tables from the reports.")
     docs.add_argument("--check", action="store_true", help="Change nothing; fail if they differ.")

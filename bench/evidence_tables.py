@@ -6,13 +6,17 @@ header and the separator stay as written, the rows below them are replaced:
     <!-- evidence-rows: groups report=by-source learner=td3bc -->
     <!-- evidence-rows: comparisons report=pooled learner=iql task=walker2d-m-r -->
     <!-- evidence-rows: across report=pooled learner=td3bc -->
+    <!-- evidence-rows: comparisons report=versus-rollouts learner=td3bc augmentation=hipode -->
     <!-- evidence-rows: runs folder=hopper-m-r-7c80ddd9 learner=td3bc -->
     <!-- evidence-rows: authenticity folder=hopper-m-r-7c80ddd9 learner=td3bc -->
 
 `groups`, `comparisons` and `across` read `hipode report`'s report.json (pooled, by-source or
-by-stage-one-seed, as `bench/evidence.py report` writes them); `runs` lists a sweep folder's
-runs finished at the campaign's budget, and refuses when they are not the runs the pooled report
-holds (a run finished after the report was written); `authenticity` puts the source beside
+by-stage-one-seed, against η = 0 or, named versus-rollouts…, against the plain model rollouts of
+the same generators, as `bench/evidence.py report` writes them; `augmentation=` keeps one arm's
+rows), and refuse a report that holds other runs than the pooled one; `runs` lists a sweep
+folder's runs finished at the campaign's budget, and refuses when they are not the runs the
+pooled report holds (a run finished after the report was written); `authenticity` puts the
+source beside
 each artifact of a sweep folder: the sweep's quality.json (rewards, real rewards at the same
 states, terminal share) and each arm's `hipode verify` report under report/<learner>/verify/
 (next-state error against the simulator, share within tolerance, novelty).
@@ -27,7 +31,7 @@ import json
 import re
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from hipode_pipeline.report import difference_text, interval_text, probability_text, replicates_text
 
@@ -35,22 +39,34 @@ ReportReader = Callable[[Path], dict[str, Any]]  # a report.json's path -> its c
 Budget = Callable[[str, str], int | None]  # (learner, task) -> the campaign's updates per run
 MARKER = re.compile(r"<!-- evidence-rows: (?P<kind>[a-z]+)(?P<params>(?: [a-z]+=[^ ]+)*) -->")
 SEPARATOR = re.compile(r"\|(\s*:?-+:?\s*\|)+")
-REPORT_FILES = {
-    "pooled": "report.json",
-    "by-source": "by-source/report.json",
-    "by-stage-one-seed": "by-stage-one-seed/report.json",
+
+
+class ReportKind(NamedTuple):
+    path: str  # below bench/evidence/report/
+    extra_keys: list[str]  # the columns its grouping adds after the task
+    flags: str  # of `python bench/evidence.py report`, which writes it
+
+
+# report names as markers give them: each arm against η = 0, or (versus-rollouts…) against the
+# plain model rollouts of the same generators
+REPORTS = {
+    "pooled": ReportKind("report.json", [], ""),
+    "by-source": ReportKind("by-source/report.json", ["source_sha256"], "--by-source"),
+    "by-stage-one-seed": ReportKind(
+        "by-stage-one-seed/report.json", ["source_sha256", "artifact_seed"], "--by-stage-one-seed"
+    ),
 }
-# the columns a report's grouping adds after the task
-EXTRA_KEYS = {
-    "pooled": [],
-    "by-source": ["source_sha256"],
-    "by-stage-one-seed": ["source_sha256", "artifact_seed"],
+REPORTS |= {
+    f"versus-rollouts{'' if name == 'pooled' else '-' + name}": ReportKind(
+        f"versus-rollouts/{kind.path}", kind.extra_keys, f"--versus-rollouts {kind.flags}".strip()
+    )
+    for name, kind in REPORTS.items()
 }
 # the keys each kind of marker takes (required, optional)
 KEYS = {
-    "groups": ({"report", "learner"}, {"task"}),
-    "comparisons": ({"report", "learner"}, {"task"}),
-    "across": ({"report", "learner"}, set()),
+    "groups": ({"report", "learner"}, {"task", "augmentation"}),
+    "comparisons": ({"report", "learner"}, {"task", "augmentation"}),
+    "across": ({"report", "learner"}, {"augmentation"}),
     "runs": ({"folder", "learner"}, set()),
     "authenticity": ({"folder", "learner"}, set()),
 }
@@ -74,7 +90,9 @@ def row(cells: list[str]) -> str:
 
 
 def wanted(key: dict[str, Any], params: dict[str, str]) -> bool:
-    return key["learner"] == params["learner"] and params.get("task", key["task"]) == key["task"]
+    return key["learner"] == params["learner"] and all(
+        params.get(name, key[name]) == key[name] for name in ("task", "augmentation")
+    )
 
 
 def sort_key(key: dict[str, Any]) -> tuple:
@@ -87,7 +105,7 @@ def sort_key(key: dict[str, Any]) -> tuple:
 
 
 def extra_cells(key: dict[str, Any], report_name: str) -> list[str]:
-    return [str(key.get(name))[:8] for name in EXTRA_KEYS[report_name]]
+    return [str(key.get(name))[:8] for name in REPORTS[report_name].extra_keys]
 
 
 def group_rows(report: dict[str, Any], report_name: str, params: dict[str, str]) -> list[str]:
@@ -134,7 +152,7 @@ def across_rows(report: dict[str, Any], report_name: str, params: dict[str, str]
     rows = []
     for entry in report["across_tasks"]:
         fields = entry.get("key") or dict(part.split("=", 1) for part in entry["arm"].split())
-        if fields.get("learner") != params["learner"]:
+        if not wanted({"task": None, **fields}, params):
             continue
         measures = entry["measures"]
         last = measures.get("last")
@@ -195,7 +213,7 @@ def run_rows(
         raise TableError(
             f"runs finished after {pooled} was written: "
             f"{', '.join(unreported)}; run `python bench/evidence.py report` (and --by-source, "
-            "--by-stage-one-seed) first"
+            "--by-stage-one-seed, and each with --versus-rollouts) first"
         )
     return rows
 
@@ -307,6 +325,20 @@ KINDS: dict[str, Callable[..., list[str]]] = {
 }
 
 
+def report_runs(report: dict[str, Any]) -> set[str]:
+    return {run for group in report["groups"] for run in group["runs"]}
+
+
+def same_runs(report: dict[str, Any], where: Path, name: str, pooled: dict[str, Any]) -> None:
+    """Every report groups the same committed runs: one written before the last report round
+    would show other numbers than the pooled tables beside it."""
+    if name != "pooled" and report_runs(report) != report_runs(pooled):
+        raise TableError(
+            f"{where} holds other runs than the pooled report; run `python bench/evidence.py "
+            f"report {REPORTS[name].flags}` again"
+        )
+
+
 def table_rows(
     kind: str,
     params: dict[str, str],
@@ -325,16 +357,18 @@ def table_rows(
             f"found {sorted(params)}"
         )
     name = params.get("report", "pooled")
-    if name not in REPORT_FILES:
-        raise TableError(f"report: expected one of {sorted(REPORT_FILES)}, found {name!r}")
-    where = reports / REPORT_FILES[name]
+    if name not in REPORTS:
+        raise TableError(f"report: expected one of {sorted(REPORTS)}, found {name!r}")
+    where, pooled = reports / REPORTS[name].path, reports / REPORTS["pooled"].path
     try:
         if kind == "runs":
-            rows = run_rows(runs, reports / REPORT_FILES["pooled"], read, params, budget)
+            rows = run_rows(runs, pooled, read, params, budget)
         elif kind == "authenticity":
             rows = authenticity_rows(runs, read, params)
         else:
-            rows = KINDS[kind](read(where), name, params)
+            report = read(where)
+            same_runs(report, where, name, read(pooled))
+            rows = KINDS[kind](report, name, params)
     except (KeyError, TypeError, IndexError, ZeroDivisionError) as error:
         read_from = {"runs": runs, "authenticity": runs / params.get("folder", "")}
         raise TableError(f"{read_from.get(kind, where)}: unexpected content ({error!r})") from None

@@ -7,8 +7,9 @@ and the mean, each with a stratified bootstrap 95 % confidence interval (rliable
 per group the bootstrap resamples seeds; a group spanning several source datasets resamples
 each source's runs within it, the sources being strata throughout). Against a baseline arm
 (`--compare data=source`): the probability of improvement P(X > Y) over runs on the same
-source, with its bootstrap CI (rliable's where the runs share one source), and the paired
-difference of the per-seed measure, over the seeds both arms ran, with a bootstrap CI.
+source (and stage-one seed, against a baseline whose runs have one), with its bootstrap CI
+(rliable's where the runs share one such stratum), and the paired difference of the per-seed
+measure, over the seeds both arms ran, with a bootstrap CI.
 Learning curves: the mean score over seeds per evaluation step, with a bootstrap 95 % CI of
 that mean.
 
@@ -34,7 +35,6 @@ from __future__ import annotations
 import csv
 import io
 import json
-import warnings
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -239,33 +239,51 @@ def group_runs(runs: list[Run], by: tuple[str, ...]) -> list[Group]:
 
 
 def _rliable():
+    """rliable's metrics (IQM, probability of improvement), or a clear error without the extra."""
     try:
-        from rliable import library, metrics
+        from rliable import metrics
     except ImportError:
         raise MissingExtraError(
             "hipode report needs rliable: install the optional extra: pip install -e '.[report]'"
         ) from None
-    return library, metrics
+    return metrics
 
 
-def _bootstrap(scores: Any, func, reps: int, seed: int) -> tuple[Any, np.ndarray]:
-    """rliable's stratified bootstrap of `func` on `scores`: (point estimate, CI array)."""
-    library, _ = _rliable()
-    # rliable's stratified bootstraps draw their resamples from numpy's global stream, not from
-    # random_state: seed that stream per call (and give the caller's back), so an interval
-    # depends on its own scores, reps and seed only, not on the process or the other groups
+def rliable_resamples(sizes: Sequence[int], reps: int, seed: int) -> list[np.ndarray]:
+    """The run indices of rliable's stratified bootstrap (get_interval_estimates, one task),
+    `reps` x n per array of n runs, drawn as it draws them: one `np.random.choice` per array
+    and resample from numpy's global stream. That stream is seeded per call and the caller's
+    given back, so an interval depends on its own scores, reps and seed only. The statistics are
+    then computed on all resamples at once instead of one Python call per resample."""
     caller_state = np.random.get_state()
     np.random.seed(seed)
     try:
-        with warnings.catch_warnings():
-            # arch, under rliable, warns that RandomState is deprecated
-            warnings.simplefilter("ignore", FutureWarning)
-            point, interval = library.get_interval_estimates(
-                {"x": scores}, func, reps=reps, random_state=np.random.RandomState(seed)
-            )
+        picks = [np.empty((reps, n), dtype=np.int64) for n in sizes]
+        for rep in range(reps):
+            for drawn, n in zip(picks, sizes, strict=True):
+                drawn[rep] = np.random.choice(n, n, replace=True)
     finally:
         np.random.set_state(caller_state)
-    return point["x"], interval["x"]
+    return picks
+
+
+def percentile_interval(samples: np.ndarray) -> np.ndarray:
+    """2 x k: each column's 2.5th and 97.5th percentile of `samples` (reps x k), the percentile
+    method rliable asks arch for."""
+    return np.array([np.percentile(column, [2.5, 97.5]) for column in samples.T]).T
+
+
+def iqm_and_mean(resampled: np.ndarray) -> np.ndarray:
+    """reps x 2: each resample's (row's) IQM (rliable's 25 % trimmed mean) and mean."""
+    from scipy.stats import trim_mean
+
+    return np.stack([trim_mean(resampled, 0.25, axis=1), resampled.mean(axis=1)], axis=1)
+
+
+def wins(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """(..., n, m): 1 where x beats y, one half for a tie (the U statistic's counting)."""
+    above, tied = x[..., :, None] > y[..., None, :], x[..., :, None] == y[..., None, :]
+    return above + 0.5 * tied
 
 
 def within_strata(strata: Sequence[Any], reps: int, rng: np.random.Generator) -> np.ndarray:
@@ -288,10 +306,11 @@ def has_spread(strata: Sequence[Any]) -> bool:
 def interval_estimates(
     values: np.ndarray, reps: int, seed: int, strata: Sequence[Any] | None = None
 ) -> dict[str, Any]:
-    """IQM and mean of per-run `values` with bootstrap 95 % CIs: rliable's over the runs of one
-    source; where `strata` (each run's source) name several, our own percentile bootstrap that
-    resamples each source's runs within it. No interval where a source holds a single run."""
-    _, metrics = _rliable()
+    """IQM and mean of per-run `values` with bootstrap 95 % CIs: rliable's resamples over the
+    runs of one source; where `strata` (each run's source) name several, our own percentile
+    bootstrap that resamples each source's runs within it. No interval where a source holds a
+    single run."""
+    metrics = _rliable()
     scores = np.asarray(values, dtype=np.float64).reshape(-1, 1)
     strata = [None] * len(scores) if strata is None else list(strata)
     if len(strata) != len(scores):
@@ -300,17 +319,13 @@ def interval_estimates(
     def aggregates(x: np.ndarray) -> np.ndarray:
         return np.array([metrics.aggregate_iqm(x), metrics.aggregate_mean(x)])
 
-    if not has_spread(strata):
-        point, interval = aggregates(scores), None
-    elif len(set(strata)) == 1:
-        point, interval = _bootstrap(scores, aggregates, reps, seed)
-    else:
-        from scipy.stats import trim_mean  # rliable's IQM, one resample per row
-
-        point = aggregates(scores)
-        resampled = scores[:, 0][within_strata(strata, reps, np.random.default_rng(seed))]
-        samples = np.stack([trim_mean(resampled, 0.25, axis=1), resampled.mean(axis=1)])
-        interval = np.quantile(samples, [0.025, 0.975], axis=1)
+    point, interval = aggregates(scores), None
+    if has_spread(strata):
+        if len(set(strata)) == 1:
+            (picks,) = rliable_resamples([len(scores)], reps, seed)
+        else:
+            picks = within_strata(strata, reps, np.random.default_rng(seed))
+        interval = percentile_interval(iqm_and_mean(scores[:, 0][picks]))
     return {
         "iqm": float(point[0]),
         "iqm_ci": None if interval is None else [float(interval[0, 0]), float(interval[1, 0])],
@@ -324,12 +339,15 @@ def interval_estimates(
 def improvement(x: np.ndarray, y: np.ndarray, reps: int, seed: int) -> dict[str, Any]:
     """P(X > Y) over the two arms' seeds with its bootstrap CI (rliable); no CI where an arm
     has a single run."""
-    _, metrics = _rliable()
+    metrics = _rliable()
     pair = (np.reshape(x, (-1, 1)), np.reshape(y, (-1, 1)))
     if min(len(pair[0]), len(pair[1])) < MIN_FOR_INTERVAL:
         return {"probability": float(metrics.probability_of_improvement(*pair)), "ci": None}
-    point, interval = _bootstrap(pair, metrics.probability_of_improvement, reps, seed)
-    return {"probability": float(point), "ci": [float(interval[0, 0]), float(interval[1, 0])]}
+    point = metrics.probability_of_improvement(*pair)
+    picks_x, picks_y = rliable_resamples([len(x), len(y)], reps, seed)
+    samples = wins(np.ravel(x)[picks_x], np.ravel(y)[picks_y]).mean(axis=(1, 2))
+    low, high = percentile_interval(samples[:, None])[:, 0]
+    return {"probability": float(point), "ci": [float(low), float(high)]}
 
 
 def improvement_within_sources(
@@ -337,31 +355,38 @@ def improvement_within_sources(
 ) -> dict[str, Any] | None:
     """P(a run of the arm scores above a run of the baseline on the same source), ties counting
     one half: over every (arm run, baseline run) couple that shares a source, so runs on
-    different datasets are never compared. One shared source: rliable's, as `improvement`.
-    Several: sources are strata, each arm's runs resampled within each source; no interval where
-    a source has a single run on either side. None where the arms share no source."""
-    by_source: dict[Any, tuple[list[float], list[float]]] = {}
+    different datasets are never compared; where the baseline's runs have stage-one seeds (plain
+    model rollouts), couples share the stage-one seed too, as the paired differences do. One
+    shared stratum: rliable's, as `improvement`. Several: each arm's runs resampled within each
+    stratum; no interval where a stratum has a single run on either side. None where the arms
+    share no stratum."""
+    by_artifact = any(run.artifact_seed is not None for run in theirs)
+    strata: dict[Any, tuple[list[float], list[float]]] = {}
     for runs, side in ((mine, 0), (theirs, 1)):
         for run in runs:
-            by_source.setdefault(run.replicate[0], ([], []))[side].append(run.measure(name, k))
-    shared = [(np.array(x), np.array(y)) for x, y in by_source.values() if x and y]
-    if not shared:
+            source, artifact_seed, _ = run.replicate
+            stratum = (source, artifact_seed) if by_artifact else (source, None)
+            strata.setdefault(stratum, ([], []))[side].append(run.measure(name, k))
+    kept = [stratum for stratum, (x, y) in strata.items() if x and y]
+    if not kept:
         return None
+    sources = len({source for source, _ in kept})
+    shared = [tuple(np.array(values) for values in strata[stratum]) for stratum in kept]
     if len(shared) == 1:
-        return {**improvement(*shared[0], reps, seed), "sources": 1}
+        return {**improvement(*shared[0], reps, seed), "sources": sources}
     couples = sum(len(x) * len(y) for x, y in shared)
-    wins = [(x[:, None] > y[None, :]) + 0.5 * (x[:, None] == y[None, :]) for x, y in shared]
-    point = sum(w.sum() for w in wins) / couples
+    per_source = [wins(x, y) for x, y in shared]
+    point = sum(w.sum() for w in per_source) / couples
     if min(min(len(x), len(y)) for x, y in shared) < MIN_FOR_INTERVAL:
-        return {"probability": float(point), "ci": None, "sources": len(shared)}
+        return {"probability": float(point), "ci": None, "sources": sources}
     rng = np.random.default_rng(seed)
     total = np.zeros(reps)
-    for w in wins:
+    for w in per_source:
         rows = rng.integers(w.shape[0], size=(reps, w.shape[0]))
         columns = rng.integers(w.shape[1], size=(reps, w.shape[1]))
         total += w[rows[:, :, None], columns[:, None, :]].sum(axis=(1, 2))
     low, high = np.quantile(total / couples, [0.025, 0.975])
-    return {"probability": float(point), "ci": [float(low), float(high)], "sources": len(shared)}
+    return {"probability": float(point), "ci": [float(low), float(high)], "sources": sources}
 
 
 def paired_cells(mine: list[Run], theirs: list[Run], name: str, k: int) -> dict[tuple, float]:
@@ -454,7 +479,8 @@ def aggregate_over_tasks(comparisons: list[dict[str, Any]], by: tuple[str, ...])
                 "ci": ci,
                 "pairs": int(sum(d["pairs"] for d in diffs)),
             }
-        rows.append(row)
+        if row["measures"]:  # an arm with no pair on some task has no mean over the tasks
+            rows.append(row)
     return rows
 
 
@@ -538,7 +564,9 @@ def build_report(
                     ),
                     "paired_difference": paired_difference(cells, reps, seed),
                 }
-            comparisons.append(entry)
+            # an arm that shares no source (or stage-one seed) with the baseline says nothing
+            if any(value is not None for m in entry["measures"].values() for value in m.values()):
+                comparisons.append(entry)
     across_tasks = aggregate_over_tasks(comparisons, by)
     _without_samples(comparisons)
     return {
@@ -551,12 +579,14 @@ def build_report(
             "run": "one replicate: (source dataset, stage-one seed of the artifact, training "
             "seed); an arm pooling several stage-one seeds has one run per pair of seeds",
             "iqm": "interquartile mean over runs (rliable aggregate_iqm)",
-            "ci": "bootstrap 95 % CI over runs: rliable's get_interval_estimates for runs of "
+            "ci": "bootstrap 95 % CI over runs: rliable's get_interval_estimates (its resamples "
+            "and percentile intervals, computed at once) for runs of "
             "one source; for several, a percentile bootstrap resampling each source's runs "
             "within it",
             "probability_of_improvement": "P(a run of the arm scores above a run of the "
-            "baseline on the same source), ties counting one half; one source: rliable's, with "
-            "its bootstrap CI; several: sources as strata, runs resampled within each",
+            "baseline on the same source, and of the same stage-one seed where the baseline's "
+            "runs have one), ties counting one half; one such stratum: rliable's, with its "
+            "bootstrap CI; several: runs resampled within each",
             "paired_difference": "mean over the arm's runs of run - the baseline's run of the "
             "same source and training seed; 95 % CI from a crossed bootstrap (training seeds "
             "and stage-one seeds resampled independently, sources as strata)",
@@ -888,8 +918,8 @@ def difference_points(report: dict[str, Any]) -> list[DifferencePoint]:
 def plot_differences(report: dict[str, Any], path: Path) -> None:
     """Paired difference (arm − baseline) with its 95 % CI, a row per arm and task and one per
     arm over tasks, a panel per measure, a line at zero: the comparisons at a glance, as PNG.
-    A difference without an interval (one pair, or a mean over tasks where a task has one) is a
-    hollow marker."""
+    A difference without an interval (where a source holds a single pair, or a mean over tasks
+    where a task has no interval) is a hollow marker."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -930,7 +960,7 @@ def plot_differences(report: dict[str, Any], path: Path) -> None:
     axes[0][0].invert_yaxis()
     figure.suptitle(
         f"arm − {report['compare']}: mean with 95% CI (dots: per task; diamonds: mean over "
-        "tasks; hollow: no interval, from one pair)",
+        "tasks; hollow: no interval, a source with a single pair)",
         fontsize=9,
     )
     figure.tight_layout()

@@ -67,6 +67,18 @@ def test_report_by_stage_one_seed_splits_each_source_by_artifact():
     assert out == str(Path("bench/evidence/report/by-stage-one-seed"))
 
 
+def test_report_versus_rollouts_compares_each_arm_with_the_rollouts():
+    for argv, out in (
+        ([], "bench/evidence/report/versus-rollouts"),
+        (["--by-source"], "bench/evidence/report/versus-rollouts/by-source"),
+        (["--by-stage-one-seed"], "bench/evidence/report/versus-rollouts/by-stage-one-seed"),
+    ):
+        args = evidence.main_parser().parse_args(["report", "--versus-rollouts", *argv])
+        command = evidence.report(args)
+        assert command[command.index("--compare") + 1] == "augmentation=model-rollouts"
+        assert command[command.index("--out") + 1] == str(Path(out))
+
+
 REPO = BENCH.parent
 
 
@@ -114,6 +126,35 @@ def test_marked_rows_are_replaced_from_the_report_and_the_rest_kept(monkeypatch)
     assert rows[0].startswith(f"| none | hopper-m-r | {group['n_runs']} (")
     assert f"| {last['mean']:.1f} [{last['mean_ci'][0]:.1f}, {last['mean_ci'][1]:.1f}] |" in rows[0]
     assert regenerate(text)[1] == []  # regenerated rows are what the next check expects
+
+
+def test_an_augmentation_keeps_one_arms_rows(monkeypatch):
+    monkeypatch.chdir(REPO)
+    header = "| a | b | c | d | e | f | g |\n|---|---|---|---|---|---|---|\n| row |"
+    rows = {}
+    for arm in ("", " augmentation=hipode"):
+        marker = f"<!-- evidence-rows: comparisons report=pooled learner=td3bc{arm} -->"
+        text, _ = regenerate(f"{marker}\n{header}")
+        rows[arm] = [line for line in text.split("\n")[3:] if line.startswith("|")]
+    assert {line.split(" | ")[0] for line in rows[""]} == {"| hipode", "| model-rollouts"}
+    assert rows[" augmentation=hipode"] == [r for r in rows[""] if r.startswith("| hipode")]
+
+
+def test_a_report_of_other_runs_than_the_pooled_one_is_refused(tmp_path, monkeypatch):
+    monkeypatch.chdir(REPO)
+    pooled = json.loads((evidence.REPORT / "report.json").read_text())
+    (tmp_path / "report.json").write_text(json.dumps(pooled))
+    stale = json.loads(json.dumps(pooled))
+    stale["groups"][0]["runs"] = stale["groups"][0]["runs"][:-1]  # written before a run finished
+    (tmp_path / "versus-rollouts").mkdir()
+    (tmp_path / "versus-rollouts" / "report.json").write_text(json.dumps(stale))
+    marker = "<!-- evidence-rows: across report=versus-rollouts learner=td3bc -->"
+    table = f"{marker}\n| a | b | c | d | e | f |\n|---|---|---|---|---|---|\n| row |"
+    with pytest.raises(evidence_tables.TableError, match="other runs than the pooled") as error:
+        regenerate(table, reports=tmp_path)
+    assert "python bench/evidence.py report --versus-rollouts` again" in str(error.value)
+    (tmp_path / "versus-rollouts" / "report.json").write_text(json.dumps(pooled))
+    assert regenerate(table, reports=tmp_path)[1]  # the same runs: its rows replace the stale one
 
 
 def write_scores(run_dir, steps, curve, speed=100.0):

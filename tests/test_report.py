@@ -128,17 +128,46 @@ def test_intervals_depend_on_their_own_scores_and_seed_only():
     assert again["mean_ci"] == first["mean_ci"] and again["iqm_ci"] == first["iqm_ci"]
     assert again_pi["ci"] == first_pi["ci"]
     assert interval_estimates(x, 2000, 1)["mean_ci"] != first["mean_ci"]  # the seed is used
-    # the caller's stream is given back where it was, also when the bootstrap fails
-    with pytest.raises(ZeroDivisionError):
-        report_module._bootstrap(x.reshape(-1, 1), lambda scores: 1 / 0, 200, 0)
+    # the caller's stream is given back where it was, also when drawing the resamples fails
     np.random.set_state(caller_state)
     expected = np.random.random(3)
     np.random.set_state(caller_state)
     interval_estimates(x, 2000, 0)
     improvement(x, y, 2000, 0)
-    with pytest.raises(ZeroDivisionError):
-        report_module._bootstrap(x.reshape(-1, 1), lambda scores: 1 / 0, 200, 0)
+    with pytest.raises(ValueError):
+        report_module.rliable_resamples([5, -1], 200, 0)
     assert np.array_equal(np.random.random(3), expected)
+
+
+def test_intervals_of_one_source_are_rliables():
+    # rliable's get_interval_estimates, one Python call per resample, against the resamples
+    # drawn as it draws them and computed at once: the same bounds (scores with ties included)
+    import warnings
+
+    from rliable import library, metrics
+
+    rng = np.random.default_rng(5)
+    x, y = rng.normal(30.0, 8.0, size=7).round(0), rng.normal(27.0, 8.0, size=5).round(0)
+
+    def rliable_interval(scores, func):
+        np.random.seed(11)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", FutureWarning)
+            _, interval = library.get_interval_estimates(
+                {"x": scores}, func, reps=300, random_state=np.random.RandomState(11)
+            )
+        return interval["x"]
+
+    def aggregates(scores):
+        return np.array([metrics.aggregate_iqm(scores), metrics.aggregate_mean(scores)])
+
+    expected = rliable_interval(x.reshape(-1, 1), aggregates)
+    ours = interval_estimates(x, 300, 11)
+    assert ours["iqm_ci"] == pytest.approx(expected[:, 0], abs=1e-12)
+    assert ours["mean_ci"] == pytest.approx(expected[:, 1], abs=1e-12)
+    pair = (x.reshape(-1, 1), y.reshape(-1, 1))
+    expected = rliable_interval(pair, metrics.probability_of_improvement)
+    assert improvement(x, y, 300, 11)["ci"] == pytest.approx(expected[:, 0], abs=1e-12)
 
 
 def test_same_seed_twice_in_a_group_is_refused(tmp_path, two_arms):
@@ -215,6 +244,60 @@ def test_pooled_stage_one_seeds_pair_with_the_baseline_and_resample_both_seeds(p
     assert hipode["ci"] == pytest.approx([-10.0, 10.0])
     assert rollouts["mean"] == pytest.approx(2.0) and rollouts["ci"] == pytest.approx([2.0, 2.0])
     assert "_means" not in hipode  # the bootstrap samples stay out of report.json
+
+
+def test_hipode_against_the_rollouts_pairs_runs_of_the_same_generators(pooled_arms):
+    # the rollouts as the baseline: each HIPODE run meets the rollout run of its own stage-one
+    # seed (+10 - 2 on seed 0, -10 - 2 on seed 1), never the other seed's; a third stage-one
+    # seed without rollouts (+30) enters neither the pairs nor P(HIPODE > rollouts)
+    for seed, final in enumerate([30.0, 40.0, 50.0]):
+        write_run(
+            pooled_arms / "hipode-a2" / f"s{seed}",
+            data="merged",
+            seed=seed,
+            scores=[final + 30.0],
+            artifact_seed=2,
+            method="hipode",
+        )
+    runs = find_runs([pooled_arms])
+    report = build_report(runs, by=POOLED, compare=("augmentation", "model-rollouts"), reps=2000)
+    entries = {e["key"]["augmentation"]: e["measures"]["last"] for e in report["comparisons"]}
+    paired = entries["hipode"]["paired_difference"]
+    assert paired["pairs"] == 6 and paired["mean"] == pytest.approx(-2.0)
+    assert paired["ci"] == pytest.approx([-12.0, 8.0])
+    by_seed = build_report(
+        runs, by=(*POOLED, "artifact_seed"), compare=("augmentation", "model-rollouts"), reps=500
+    )
+    means = {
+        e["key"]["artifact_seed"]: e["measures"]["last"]["paired_difference"]["mean"]
+        for e in by_seed["comparisons"]
+        if e["key"]["augmentation"] == "hipode"
+    }
+    assert means == {0: pytest.approx(8.0), 1: pytest.approx(-12.0)}
+    # couples of one source and stage-one seed: 6 of 9 wins on seed 0, 1 of 9 on seed 1
+    probability = entries["hipode"]["probability_of_improvement"]
+    assert probability["probability"] == pytest.approx(7 / 18) and probability["sources"] == 1
+    # eta0 has no stage-one seed to pair on: no comparison at all
+    assert set(entries) == {"hipode"}
+
+
+def test_an_arm_without_pairs_on_a_task_gets_no_row_across_tasks(tmp_path):
+    runs = tmp_path / "runs"
+    write_two_tasks(runs, {"hopper-m-r": 5.0, "walker2d-m-r": 15.0}, noise=1.0)
+    for task in ("hopper-m-r", "walker2d-m-r"):
+        for seed in range(3):
+            write_run(
+                runs / task / f"r{seed}",
+                data="merged",
+                seed=seed,
+                scores=[30.0],
+                task=task,
+                method="model-rollouts",
+            )
+    report = build_report(
+        find_runs([runs]), by=POOLED, compare=("augmentation", "model-rollouts"), reps=500
+    )
+    assert [entry["key"]["augmentation"] for entry in report["across_tasks"]] == ["hipode"]
 
 
 def write_two_tasks(runs: Path, gains: dict[str, float], noise: float) -> None:
