@@ -132,8 +132,8 @@ def sweep(args: argparse.Namespace) -> list[str]:
 def report(args: argparse.Namespace) -> list[str]:
     by, out, baseline = "task,learner,augmentation", REPORT, "none"
     if args.versus_rollouts:
-        # HIPODE against the rollouts of its own generators (same source, stage-one and training
-        # seed): whether the high-return selection, not the generators, makes a difference
+        # HIPODE against the rollouts on its own stage-one seed's dynamics ensemble (same source,
+        # stage-one and training seed): what HIPODE's generation adds over model rollouts
         out, baseline = REPORT / "versus-rollouts", "model-rollouts"
     if args.by_stage_one_seed:
         # per artifact: a source's artifacts differ by their stage-one seed alone
@@ -206,7 +206,7 @@ def main_parser() -> argparse.ArgumentParser:
     pooled.add_argument(
         "--versus-rollouts",
         action="store_true",
-        help="Each arm against the plain model rollouts of the same generators instead of "
+        help="Each arm against the plain model rollouts of the same stage-one seed instead of "
         "eta0 (report/versus-rollouts/, with --by-source or --by-stage-one-seed below it).",
     )
     docs = commands.add_parser("tables", help="docs/evidence.md's marked tables from the reports.")

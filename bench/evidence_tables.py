@@ -12,7 +12,7 @@ header and the separator stay as written, the rows below them are replaced:
 
 `groups`, `comparisons` and `across` read `hipode report`'s report.json (pooled, by-source or
 by-stage-one-seed, against η = 0 or, named versus-rollouts…, against the plain model rollouts of
-the same generators, as `bench/evidence.py report` writes them; `augmentation=` keeps one arm's
+the same stage-one seed, as `bench/evidence.py report` writes them; `augmentation=` keeps one arm's
 rows), and refuse a report that holds other runs than the pooled one; `runs` lists a sweep
 folder's runs finished at the campaign's budget, and refuses when they are not the runs the
 pooled report holds (a run finished after the report was written); `authenticity` puts the
@@ -48,7 +48,7 @@ class ReportKind(NamedTuple):
 
 
 # report names as markers give them: each arm against η = 0, or (versus-rollouts…) against the
-# plain model rollouts of the same generators
+# plain model rollouts of the same stage-one seed (its dynamics ensemble)
 REPORTS = {
     "pooled": ReportKind("report.json", [], ""),
     "by-source": ReportKind("by-source/report.json", ["source_sha256"], "--by-source"),
@@ -91,7 +91,7 @@ def row(cells: list[str]) -> str:
 
 def wanted(key: dict[str, Any], params: dict[str, str]) -> bool:
     return key["learner"] == params["learner"] and all(
-        params.get(name, key[name]) == key[name] for name in ("task", "augmentation")
+        name not in params or key.get(name) == params[name] for name in ("task", "augmentation")
     )
 
 

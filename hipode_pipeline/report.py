@@ -497,6 +497,11 @@ def baseline_of(group: Group, baselines: list[Group], keys: list[str]) -> Group 
     return None
 
 
+def says_something(entry: dict[str, Any]) -> bool:
+    """Whether a comparison holds any P(improvement) or paired difference."""
+    return any(value is not None for m in entry["measures"].values() for value in m.values())
+
+
 def _without_samples(entries: list[dict[str, Any]]) -> None:
     for entry in entries:
         for measure in entry["measures"].values():
@@ -564,10 +569,11 @@ def build_report(
                     ),
                     "paired_difference": paired_difference(cells, reps, seed),
                 }
-            # an arm that shares no source (or stage-one seed) with the baseline says nothing
-            if any(value is not None for m in entry["measures"].values() for value in m.values()):
-                comparisons.append(entry)
+            comparisons.append(entry)
     across_tasks = aggregate_over_tasks(comparisons, by)
+    # an arm that shares no source (or stage-one seed) with its baseline says nothing; left out
+    # after the mean over tasks, which must not average over fewer tasks because of it
+    comparisons = [entry for entry in comparisons if says_something(entry)]
     _without_samples(comparisons)
     return {
         "by": list(by),

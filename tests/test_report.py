@@ -246,7 +246,7 @@ def test_pooled_stage_one_seeds_pair_with_the_baseline_and_resample_both_seeds(p
     assert "_means" not in hipode  # the bootstrap samples stay out of report.json
 
 
-def test_hipode_against_the_rollouts_pairs_runs_of_the_same_generators(pooled_arms):
+def test_hipode_against_the_rollouts_pairs_runs_of_the_same_stage_one_seed(pooled_arms):
     # the rollouts as the baseline: each HIPODE run meets the rollout run of its own stage-one
     # seed (+10 - 2 on seed 0, -10 - 2 on seed 1), never the other seed's; a third stage-one
     # seed without rollouts (+30) enters neither the pairs nor P(HIPODE > rollouts)
@@ -281,7 +281,10 @@ def test_hipode_against_the_rollouts_pairs_runs_of_the_same_generators(pooled_ar
     assert set(entries) == {"hipode"}
 
 
-def test_an_arm_without_pairs_on_a_task_gets_no_row_across_tasks(tmp_path):
+@pytest.mark.parametrize("walker_rollouts_seed", [0, 5])
+def test_an_arm_without_pairs_on_a_task_gets_no_row_across_tasks(tmp_path, walker_rollouts_seed):
+    # eta0 never pairs with the rollouts; with walker2d-m-r's rollouts of another stage-one seed
+    # HIPODE pairs on hopper-m-r alone, and a mean over one of two tasks is no mean over tasks
     runs = tmp_path / "runs"
     write_two_tasks(runs, {"hopper-m-r": 5.0, "walker2d-m-r": 15.0}, noise=1.0)
     for task in ("hopper-m-r", "walker2d-m-r"):
@@ -292,12 +295,19 @@ def test_an_arm_without_pairs_on_a_task_gets_no_row_across_tasks(tmp_path):
                 seed=seed,
                 scores=[30.0],
                 task=task,
+                artifact_seed=walker_rollouts_seed if task == "walker2d-m-r" else 0,
                 method="model-rollouts",
             )
     report = build_report(
         find_runs([runs]), by=POOLED, compare=("augmentation", "model-rollouts"), reps=500
     )
-    assert [entry["key"]["augmentation"] for entry in report["across_tasks"]] == ["hipode"]
+    compared = [(e["key"]["task"], e["key"]["augmentation"]) for e in report["comparisons"]]
+    across = [entry["key"]["augmentation"] for entry in report["across_tasks"]]
+    if walker_rollouts_seed == 0:
+        assert compared == [("hopper-m-r", "hipode"), ("walker2d-m-r", "hipode")]
+        assert across == ["hipode"]
+    else:
+        assert compared == [("hopper-m-r", "hipode")] and across == []
 
 
 def write_two_tasks(runs: Path, gains: dict[str, float], noise: float) -> None:
