@@ -188,7 +188,7 @@ def run_rows(
     if steps is None:
         raise TableError(f"learner: expected one the campaign has a budget for, found {learner!r}")
     # the run folders the pooled report holds, as it names them (relative to the checkout)
-    in_report = {run for group in read(pooled)["groups"] for run in group["runs"]}
+    in_report = report_runs(read(pooled))
     rows, unreported = [], []
     arms = [p.name for p in (folder / task).iterdir() if p.is_dir()]
     for arm in sorted(arms, key=lambda name: rank(ARM_ORDER, name)):

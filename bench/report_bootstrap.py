@@ -37,7 +37,7 @@ from hipode_pipeline.report import improvement, interval_estimates  # noqa: E402
 RESULTS = REPO / "bench" / "results"
 # (statistic, runs of the arm, runs of the baseline): the sizes of one source's groups
 CASES = [("iqm and mean", 10, None), ("iqm and mean", 30, None), ("P(improvement)", 10, 5)]
-CASES += [("P(improvement)", 30, 15)]
+CASES += [("P(improvement)", 10, 10), ("P(improvement)", 30, 15)]  # equal sizes draw at once
 
 
 def rliable_interval(scores, func, reps: int, seed: int) -> np.ndarray:

@@ -258,13 +258,17 @@ def rliable_resamples(sizes: Sequence[int], reps: int, seed: int) -> list[np.nda
     caller_state = np.random.get_state()
     np.random.seed(seed)
     try:
+        if len(set(sizes)) == 1:
+            # one bound: the same draws, in the same order, as one call (choice is randint here)
+            drawn = np.random.randint(0, sizes[0], size=(reps, sum(sizes)))
+            return np.split(drawn, np.cumsum(sizes)[:-1], axis=1)
         picks = [np.empty((reps, n), dtype=np.int64) for n in sizes]
         for rep in range(reps):
-            for drawn, n in zip(picks, sizes, strict=True):
-                drawn[rep] = np.random.choice(n, n, replace=True)
+            for picked, n in zip(picks, sizes, strict=True):
+                picked[rep] = np.random.choice(n, n, replace=True)
+        return picks
     finally:
         np.random.set_state(caller_state)
-    return picks
 
 
 def percentile_interval(samples: np.ndarray) -> np.ndarray:
@@ -375,13 +379,13 @@ def improvement_within_sources(
     if len(shared) == 1:
         return {**improvement(*shared[0], reps, seed), "sources": sources}
     couples = sum(len(x) * len(y) for x, y in shared)
-    per_source = [wins(x, y) for x, y in shared]
-    point = sum(w.sum() for w in per_source) / couples
+    per_stratum = [wins(x, y) for x, y in shared]
+    point = sum(w.sum() for w in per_stratum) / couples
     if min(min(len(x), len(y)) for x, y in shared) < MIN_FOR_INTERVAL:
         return {"probability": float(point), "ci": None, "sources": sources}
     rng = np.random.default_rng(seed)
     total = np.zeros(reps)
-    for w in per_source:
+    for w in per_stratum:
         rows = rng.integers(w.shape[0], size=(reps, w.shape[0]))
         columns = rng.integers(w.shape[1], size=(reps, w.shape[1]))
         total += w[rows[:, :, None], columns[:, None, :]].sum(axis=(1, 2))

@@ -141,33 +141,29 @@ def test_intervals_depend_on_their_own_scores_and_seed_only():
 
 def test_intervals_of_one_source_are_rliables():
     # rliable's get_interval_estimates, one Python call per resample, against the resamples
-    # drawn as it draws them and computed at once: the same bounds (scores with ties included)
-    import warnings
+    # drawn as it draws them and computed at once: the same bounds (scores with ties included;
+    # arms of unequal and of equal size, which draw their resamples differently)
+    import sys
 
-    from rliable import library, metrics
+    from rliable import metrics
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
+    from report_bootstrap import rliable_interval
 
     rng = np.random.default_rng(5)
     x, y = rng.normal(30.0, 8.0, size=7).round(0), rng.normal(27.0, 8.0, size=5).round(0)
 
-    def rliable_interval(scores, func):
-        np.random.seed(11)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", FutureWarning)
-            _, interval = library.get_interval_estimates(
-                {"x": scores}, func, reps=300, random_state=np.random.RandomState(11)
-            )
-        return interval["x"]
-
     def aggregates(scores):
         return np.array([metrics.aggregate_iqm(scores), metrics.aggregate_mean(scores)])
 
-    expected = rliable_interval(x.reshape(-1, 1), aggregates)
+    expected = rliable_interval(x.reshape(-1, 1), aggregates, 300, 11)
     ours = interval_estimates(x, 300, 11)
     assert ours["iqm_ci"] == pytest.approx(expected[:, 0], abs=1e-12)
     assert ours["mean_ci"] == pytest.approx(expected[:, 1], abs=1e-12)
-    pair = (x.reshape(-1, 1), y.reshape(-1, 1))
-    expected = rliable_interval(pair, metrics.probability_of_improvement)
-    assert improvement(x, y, 300, 11)["ci"] == pytest.approx(expected[:, 0], abs=1e-12)
+    for other in (y, y[::-1] + 3.0, np.append(y, [27.0, 31.0])):  # 5, 5 and 7 runs
+        pair = (x.reshape(-1, 1), other.reshape(-1, 1))
+        expected = rliable_interval(pair, metrics.probability_of_improvement, 300, 11)
+        assert improvement(x, other, 300, 11)["ci"] == pytest.approx(expected[:, 0], abs=1e-12)
 
 
 def test_same_seed_twice_in_a_group_is_refused(tmp_path, two_arms):
