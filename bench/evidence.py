@@ -23,6 +23,7 @@ and the report pools sources as strata, each run paired with the baseline on its
     python bench/evidence.py report --by-source                        # one row per source
     python bench/evidence.py report --by-stage-one-seed                # one row per artifact
     python bench/evidence.py report --versus-rollouts      # hipode - the same models' rollouts
+    python bench/evidence.py report --design    # only the sources holding an arm's full grid
     python bench/evidence.py tables            # docs/evidence.md's marked tables from them
     python bench/evidence.py sources           # which source folders this machine can extend
     python bench/evidence.py tables --check    # fails naming each table the reports contradict
@@ -135,15 +136,19 @@ def report(args: argparse.Namespace) -> list[str]:
         # HIPODE against the rollouts on its own stage-one seed's dynamics ensemble (same source,
         # stage-one and training seed): what HIPODE's generation adds over model rollouts
         out, baseline = REPORT / "versus-rollouts", "model-rollouts"
+    runs = [str(RUNS)]
     if args.by_stage_one_seed:
         # per artifact: a source's artifacts differ by their stage-one seed alone
         by, out = by + ",source_sha256,artifact_seed", out / "by-stage-one-seed"
     elif args.by_source:
         # per source: whether a finding holds on each dataset, not only pooled over them
         by, out = by + ",source_sha256", out / "by-source"
+    elif args.design:
+        # the issue's grid only: a source stopped early leaves the pooled rows without intervals
+        out, runs = out / "design", design_folders()
     return [
         "report",
-        str(RUNS),
+        *runs,
         "--by",
         by,
         "--compare",
@@ -152,6 +157,15 @@ def report(args: argparse.Namespace) -> list[str]:
         str(out),
         "--force",
     ]
+
+
+def design_folders() -> list[str]:
+    """The committed run folders that the design reports aggregate (evidence_design)."""
+    from evidence_design import design_runs
+
+    from hipode_pipeline.report import find_runs
+
+    return [str(run.path) for run in design_runs(find_runs([RUNS]), budget)]
 
 
 def tables(args: argparse.Namespace) -> int:
@@ -195,13 +209,20 @@ def main_parser() -> argparse.ArgumentParser:
     run.add_argument("--workers", type=int, default=2, help="Parallel training processes.")
     run.add_argument("--report-only", action="store_true", help="Report the finished runs.")
     pooled = commands.add_parser("report", help="The pooled report over every committed run.")
-    pooled.add_argument(
+    grouping = pooled.add_mutually_exclusive_group()
+    grouping.add_argument(
         "--by-source", action="store_true", help="One group per source (report/by-source/)."
     )
-    pooled.add_argument(
+    grouping.add_argument(
         "--by-stage-one-seed",
         action="store_true",
         help="One group per source and artifact (report/by-stage-one-seed/).",
+    )
+    grouping.add_argument(
+        "--design",
+        action="store_true",
+        help="Pooled over the sources that hold an arm's full grid (>= 5 training x 2 "
+        "stage-one seeds, 5 eta0 seeds) only (report/design/).",
     )
     pooled.add_argument(
         "--versus-rollouts",

@@ -6,14 +6,17 @@ header and the separator stay as written, the rows below them are replaced:
     <!-- evidence-rows: groups report=by-source learner=td3bc -->
     <!-- evidence-rows: comparisons report=pooled learner=iql task=walker2d-m-r -->
     <!-- evidence-rows: across report=pooled learner=td3bc -->
+    <!-- evidence-rows: scores report=design learner=iql -->
     <!-- evidence-rows: comparisons report=versus-rollouts learner=td3bc augmentation=hipode -->
     <!-- evidence-rows: runs folder=hopper-m-r-7c80ddd9 learner=td3bc -->
     <!-- evidence-rows: authenticity folder=hopper-m-r-7c80ddd9 learner=td3bc -->
 
-`groups`, `comparisons` and `across` read `hipode report`'s report.json (pooled, by-source or
-by-stage-one-seed, against η = 0 or, named versus-rollouts…, against the plain model rollouts of
-the same stage-one seed, as `bench/evidence.py report` writes them; `augmentation=` keeps one arm's
-rows), and refuse a report that holds other runs than the pooled one; `runs` lists a sweep
+`groups`, `comparisons`, `across` and `scores` (each arm's scores over tasks) read
+`hipode report`'s report.json (pooled, by-source, by-stage-one-seed or design, against η = 0
+or, named versus-rollouts…, against the plain model rollouts of the same stage-one seed, as
+`bench/evidence.py report` writes them; `augmentation=` keeps one arm's
+rows), and refuse a report that holds other runs than the pooled one (a design report: other
+than the design's share of them); `runs` lists a sweep
 folder's runs finished at the campaign's budget, and refuses when they are not the runs the
 pooled report holds (a run finished after the report was written); `authenticity` puts the
 source beside
@@ -33,7 +36,15 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from hipode_pipeline.report import difference_text, interval_text, probability_text, replicates_text
+from evidence_design import design_runs
+
+from hipode_pipeline.report import (
+    difference_text,
+    find_runs,
+    interval_text,
+    probability_text,
+    replicates_text,
+)
 
 ReportReader = Callable[[Path], dict[str, Any]]  # a report.json's path -> its content
 Budget = Callable[[str, str], int | None]  # (learner, task) -> the campaign's updates per run
@@ -45,6 +56,7 @@ class ReportKind(NamedTuple):
     path: str  # below bench/evidence/report/
     extra_keys: list[str]  # the columns its grouping adds after the task
     flags: str  # of `python bench/evidence.py report`, which writes it
+    design: bool = False  # holds only the runs of the design (evidence_design), not every run
 
 
 # report names as markers give them: each arm against η = 0, or (versus-rollouts…) against the
@@ -55,10 +67,11 @@ REPORTS = {
     "by-stage-one-seed": ReportKind(
         "by-stage-one-seed/report.json", ["source_sha256", "artifact_seed"], "--by-stage-one-seed"
     ),
+    "design": ReportKind("design/report.json", [], "--design", design=True),
 }
 REPORTS |= {
-    f"versus-rollouts{'' if name == 'pooled' else '-' + name}": ReportKind(
-        f"versus-rollouts/{kind.path}", kind.extra_keys, f"--versus-rollouts {kind.flags}".strip()
+    f"versus-rollouts{'' if name == 'pooled' else '-' + name}": kind._replace(
+        path=f"versus-rollouts/{kind.path}", flags=f"--versus-rollouts {kind.flags}".strip()
     )
     for name, kind in REPORTS.items()
 }
@@ -67,6 +80,7 @@ KEYS = {
     "groups": ({"report", "learner"}, {"task", "augmentation"}),
     "comparisons": ({"report", "learner"}, {"task", "augmentation"}),
     "across": ({"report", "learner"}, {"augmentation"}),
+    "scores": ({"report", "learner"}, {"augmentation"}),
     "runs": ({"folder", "learner"}, set()),
     "authenticity": ({"folder", "learner"}, set()),
 }
@@ -148,7 +162,8 @@ def comparison_rows(report: dict[str, Any], report_name: str, params: dict[str, 
 
 
 def across_rows(report: dict[str, Any], report_name: str, params: dict[str, str]) -> list[str]:
-    """One row per arm: the mean over tasks of each task's mean paired difference."""
+    """One row per arm: the mean over tasks of each task's mean paired difference (and, at the
+    last evaluation, of each task's P(improvement))."""
     rows = []
     for entry in report["across_tasks"]:
         fields = entry.get("key") or dict(part.split("=", 1) for part in entry["arm"].split())
@@ -163,8 +178,32 @@ def across_rows(report: dict[str, Any], report_name: str, params: dict[str, str]
                     ", ".join(entry["tasks"]),
                     "0" if last is None else str(last["pairs"]),
                     difference_text(last),
+                    probability_text(last and last.get("probability_of_improvement")),
                     difference_text(measures.get("last_k_mean")),
                     difference_text(measures.get("curve_mean")),
+                ]
+            )
+        )
+    return rows
+
+
+def score_rows(report: dict[str, Any], report_name: str, params: dict[str, str]) -> list[str]:
+    """One row per arm: its runs' scores aggregated over tasks (IQM and mean, tasks weighing
+    the same)."""
+    found = [e for e in report["scores_across_tasks"] if wanted({"task": None, **e["key"]}, params)]
+    rows = []
+    for entry in sorted(found, key=lambda e: rank(AUGMENTATION_ORDER, e["key"]["augmentation"])):
+        measures = entry["measures"]
+        rows.append(
+            row(
+                [
+                    entry["key"]["augmentation"],
+                    ", ".join(entry["tasks"]),
+                    str(entry["n_runs"]),
+                    interval_text(measures["last"], "iqm"),
+                    interval_text(measures["last"], "mean"),
+                    interval_text(measures["last_k_mean"], "iqm"),
+                    interval_text(measures["curve_mean"], "iqm"),
                 ]
             )
         )
@@ -322,6 +361,7 @@ KINDS: dict[str, Callable[..., list[str]]] = {
     "groups": group_rows,
     "comparisons": comparison_rows,
     "across": across_rows,
+    "scores": score_rows,
 }
 
 
@@ -329,13 +369,27 @@ def report_runs(report: dict[str, Any]) -> set[str]:
     return {run for group in report["groups"] for run in group["runs"]}
 
 
-def same_runs(report: dict[str, Any], where: Path, name: str, pooled: dict[str, Any]) -> None:
-    """Every report groups the same committed runs: one written before the last report round
-    would show other numbers than the pooled tables beside it."""
-    if name != "pooled" and report_runs(report) != report_runs(pooled):
+@functools.cache
+def design_of(runs: frozenset[str], budget: Budget) -> set[str]:
+    """Of these run folders, the ones the design reports aggregate."""
+    chosen = design_runs(find_runs(sorted(Path(run) for run in runs)), budget)
+    return {str(run.path) for run in chosen}
+
+
+def same_runs(
+    report: dict[str, Any], where: Path, name: str, pooled: dict[str, Any], budget: Budget
+) -> None:
+    """Every report groups the same committed runs (a design report: the design's share of
+    them): one written before the last report round would show other numbers than the pooled
+    tables beside it."""
+    expected = report_runs(pooled)
+    if REPORTS[name].design:
+        expected = design_of(frozenset(expected), budget)
+    if report_runs(report) != expected:
+        picked = "the design picks from the" if REPORTS[name].design else "the"
         raise TableError(
-            f"{where} holds other runs than the pooled report; run `python bench/evidence.py "
-            f"report {REPORTS[name].flags}` again"
+            f"{where} holds other runs than {picked} pooled report; run `python "
+            f"bench/evidence.py report {REPORTS[name].flags}` again"
         )
 
 
@@ -367,7 +421,7 @@ def table_rows(
             rows = authenticity_rows(runs, read, params)
         else:
             report = read(where)
-            same_runs(report, where, name, read(pooled))
+            same_runs(report, where, name, read(pooled), budget)
             rows = KINDS[kind](report, name, params)
     except (KeyError, TypeError, IndexError, ZeroDivisionError) as error:
         read_from = {"runs": runs, "authenticity": runs / params.get("folder", "")}

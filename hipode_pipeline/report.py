@@ -20,7 +20,9 @@ with the baseline's run of the same source and training seed, and the bootstrap 
 training seeds and stage-one seeds independently (crossed), so the interval covers both sources
 of variance. A group holds runs of one budget (`steps`). With `task` among the keys,
 comparisons are also aggregated over tasks: the mean over tasks of each task's mean paired
-difference, bootstrapped within each task (stratified). One run, or one pair, has no spread to
+difference and of each task's P(improvement), bootstrapped within each task (stratified); and
+each arm's scores are aggregated over tasks as rliable does (IQM and mean of every run on every
+task, each task weighing the same). One run, or one pair, has no spread to
 resample: such a statistic is reported without an interval, and so is a group statistic, a
 P(improvement) or a paired difference where any source holds a single run or pair, and a mean
 over tasks where any task lacks one.
@@ -38,6 +40,7 @@ import json
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -53,9 +56,12 @@ MEASURE_TEXT = {
     "curve_mean": "mean over all evaluations",
 }
 DEFAULT_BY = ("task", "learner", "data")
+# what the runs summary says of a run whose scores.json predates the field
+NOT_RECORDED = "not recorded"
 # a bootstrap over one value returns that value as both bounds: no interval at all
 MIN_FOR_INTERVAL = 2
 NO_INTERVAL = "no interval"
+LONG_COMMAND = 200  # characters of a command report.md shows
 OUTPUTS = (
     "report.json",
     "report.md",
@@ -74,6 +80,10 @@ class Run:
     keys: dict[str, Any]  # task, learner, data, eta, mixing, seed, artifact_seed, ...
     steps: list[int]  # evaluation steps
     scores: list[float]  # D4RL-normalized score mean at each evaluation
+    # where, when and under what load its last session finished; None where not recorded
+    cpu: str | None = None
+    finished_utc: datetime | None = None
+    load_1min: float | None = None
 
     @property
     def seed(self) -> int:
@@ -168,7 +178,65 @@ def read_run(folder: Path) -> Run:
     keys["augmentation"] = augmentation(keys.get("data"), identity)
     # a run on the source alone has no stage-one seed: None, so it can still be grouped by it
     keys["artifact_seed"] = None if keys.get("data") == "source" else keys.get("artifact_seed")
-    return Run(folder, keys, steps, scores)
+    return Run(folder, keys, steps, scores, *finish_record(path, data))
+
+
+def finish_record(
+    path: Path, data: dict[str, Any]
+) -> tuple[str | None, datetime | None, float | None]:
+    """The CPU, the finish time (UTC) and the 1-minute load average that scores.json records of
+    the run's last session; each None where it records none (runs written before it did)."""
+    cpu, finished, load = data.get("cpu"), data.get("finished_utc"), data.get("load_average")
+    if cpu is not None and not isinstance(cpu, str):
+        raise DataFormatError(path, "cpu", "the CPU's name (text)", cpu)
+    finished_utc = None
+    if finished is not None:
+        try:
+            finished_utc = datetime.fromisoformat(finished)
+        except (TypeError, ValueError):
+            finished_utc = None
+        # a time without its offset cannot be placed among the others
+        if finished_utc is None or finished_utc.tzinfo is None:
+            raise DataFormatError(
+                path, "finished_utc", "an ISO 8601 time with its UTC offset", finished
+            )
+    load_1min = load[0] if isinstance(load, list) and load else None
+    if load is not None and (
+        not isinstance(load_1min, int | float)
+        or isinstance(load_1min, bool)
+        or not np.isfinite(load_1min)
+        or load_1min < 0
+    ):
+        raise DataFormatError(
+            path, "load_average", "the 1, 5 and 15-minute load averages (numbers)", load
+        )
+    return (
+        # platform may know no CPU name at all: an empty one says nothing
+        None if cpu is None else (cpu.strip() or None),
+        None if finished_utc is None else finished_utc.astimezone(UTC),
+        None if load_1min is None else float(load_1min),
+    )
+
+
+def runs_summary(runs: Sequence[Run]) -> dict[str, Any]:
+    """On which CPUs, when and under what load the runs were trained, as they record it: runs
+    of other CPUs can round differently, and a loaded machine trains slower."""
+    finished = sorted(run.finished_utc for run in runs if run.finished_utc is not None)
+    loads = [run.load_1min for run in runs if run.load_1min is not None]
+    return {
+        "n_runs": len(runs),
+        "cpus": dict(Counter(run.cpu or NOT_RECORDED for run in runs).most_common()),
+        "finished_utc": {
+            "earliest": finished[0].isoformat() if finished else None,
+            "latest": finished[-1].isoformat() if finished else None,
+            "not_recorded": len(runs) - len(finished),
+        },
+        "load_average_1min": {
+            "min": min(loads) if loads else None,
+            "max": max(loads) if loads else None,
+            "not_recorded": len(runs) - len(loads),
+        },
+    }
 
 
 def augmentation(data: Any, identity: dict[str, Any]) -> str:
@@ -346,12 +414,14 @@ def improvement(x: np.ndarray, y: np.ndarray, reps: int, seed: int) -> dict[str,
     metrics = _rliable()
     pair = (np.reshape(x, (-1, 1)), np.reshape(y, (-1, 1)))
     if min(len(pair[0]), len(pair[1])) < MIN_FOR_INTERVAL:
-        return {"probability": float(metrics.probability_of_improvement(*pair)), "ci": None}
+        point = metrics.probability_of_improvement(*pair)
+        return {"probability": float(point), "ci": None, "_samples": None}
     point = metrics.probability_of_improvement(*pair)
     picks_x, picks_y = rliable_resamples([len(x), len(y)], reps, seed)
     samples = wins(np.ravel(x)[picks_x], np.ravel(y)[picks_y]).mean(axis=(1, 2))
     low, high = percentile_interval(samples[:, None])[:, 0]
-    return {"probability": float(point), "ci": [float(low), float(high)]}
+    # the resamples stay for the mean over tasks; not written
+    return {"probability": float(point), "ci": [float(low), float(high)], "_samples": samples}
 
 
 def improvement_within_sources(
@@ -382,15 +452,21 @@ def improvement_within_sources(
     per_stratum = [wins(x, y) for x, y in shared]
     point = sum(w.sum() for w in per_stratum) / couples
     if min(min(len(x), len(y)) for x, y in shared) < MIN_FOR_INTERVAL:
-        return {"probability": float(point), "ci": None, "sources": sources}
+        return {"probability": float(point), "ci": None, "sources": sources, "_samples": None}
     rng = np.random.default_rng(seed)
     total = np.zeros(reps)
     for w in per_stratum:
         rows = rng.integers(w.shape[0], size=(reps, w.shape[0]))
         columns = rng.integers(w.shape[1], size=(reps, w.shape[1]))
         total += w[rows[:, :, None], columns[:, None, :]].sum(axis=(1, 2))
-    low, high = np.quantile(total / couples, [0.025, 0.975])
-    return {"probability": float(point), "ci": [float(low), float(high)], "sources": sources}
+    samples = total / couples
+    low, high = np.quantile(samples, [0.025, 0.975])
+    return {
+        "probability": float(point),
+        "ci": [float(low), float(high)],
+        "sources": sources,
+        "_samples": samples,
+    }
 
 
 def paired_cells(mine: list[Run], theirs: list[Run], name: str, k: int) -> dict[tuple, float]:
@@ -473,19 +549,98 @@ def aggregate_over_tasks(comparisons: list[dict[str, Any]], by: tuple[str, ...])
             diffs = [entry["measures"][name]["paired_difference"] for entry in entries]
             if any(d is None for d in diffs):
                 continue
-            ci = None
-            if all(d["_means"] is not None for d in diffs):
-                size = min(len(d["_means"]) for d in diffs)
-                means = np.mean([d["_means"][:size] for d in diffs], axis=0)
-                ci = [float(np.quantile(means, 0.025)), float(np.quantile(means, 0.975))]
+            chances = [entry["measures"][name]["probability_of_improvement"] for entry in entries]
             row["measures"][name] = {
-                "mean": float(np.mean([d["mean"] for d in diffs])),
-                "ci": ci,
+                **mean_over_tasks(diffs, "mean", "_means"),
                 "pairs": int(sum(d["pairs"] for d in diffs)),
+                # rliable's P(improvement) over several tasks: the mean of the tasks' own
+                "probability_of_improvement": None
+                if any(p is None for p in chances)
+                else mean_over_tasks(chances, "probability", "_samples"),
             }
         if row["measures"]:  # an arm with no pair on some task has no mean over the tasks
             rows.append(row)
     return rows
+
+
+def weighted_iqm(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Interquartile mean of each row of `values` (... x n), run i weighing `weights[i]` (they
+    sum to 1): the mean over the middle half of the weight, a run straddling a quartile counting
+    in part. With equal weights and n a multiple of 4 it is rliable's IQM."""
+    order = np.argsort(values, axis=-1)
+    ordered, weight = np.take_along_axis(values, order, axis=-1), weights[order]
+    upper = np.cumsum(weight, axis=-1)
+    share = np.clip(np.minimum(upper, 0.75) - np.maximum(upper - weight, 0.25), 0.0, None)
+    return (ordered * share).sum(axis=-1) / 0.5
+
+
+def scores_over_tasks(
+    groups: list[Group], by: tuple[str, ...], k: int, reps: int, seed: int
+) -> list[dict[str, Any]]:
+    """Per arm key without the task, rliable's aggregate over tasks of the runs' scores: the IQM
+    and the mean of every run of the arm on every task, each task weighing the same (a run 1 /
+    (tasks x its task's runs)), with 95 % CIs from a bootstrap that resamples each source's runs
+    within it (sources as strata, so tasks too); no CI where a source holds a single run."""
+    if "task" not in by:
+        return []
+    merged: dict[tuple, list[Group]] = {}
+    for group in groups:
+        key = tuple((name, value) for name, value in group.key.items() if name != "task")
+        merged.setdefault(key, []).append(group)
+    rows = []
+    for key, members in merged.items():
+        if len(members) < 2:
+            continue  # one task: its group's own row says it
+        runs = [run for group in members for run in group.runs]
+        weights = np.concatenate(
+            [np.full(len(g.runs), 1.0 / (len(members) * len(g.runs))) for g in members]
+        )
+        sources = [run.replicate[0] for run in runs]
+        picks = (
+            within_strata(sources, reps, np.random.default_rng(seed))
+            if has_spread(sources)
+            else None
+        )
+        row: dict[str, Any] = {
+            "arm": " ".join(f"{k2}={_shown(v)}" for k2, v in key),
+            "key": dict(key),
+            "tasks": [group.key["task"] for group in members],
+            "steps": sorted({run.keys.get("steps") for run in runs}, key=str),
+            "n_runs": len(runs),
+            "measures": {},
+        }
+        for name in MEASURES:
+            values = np.array([run.measure(name, k) for run in runs])
+            measure: dict[str, Any] = {
+                "iqm": float(weighted_iqm(values, weights)),
+                "mean": float(values @ weights),
+                "iqm_ci": None,
+                "mean_ci": None,
+            }
+            if picks is not None:
+                resampled = values[picks]
+                for stat, samples in (
+                    ("iqm", weighted_iqm(resampled, weights)),
+                    ("mean", resampled @ weights),
+                ):
+                    low, high = np.quantile(samples, [0.025, 0.975])
+                    measure[f"{stat}_ci"] = [float(low), float(high)]
+            row["measures"][name] = measure
+        rows.append(row)
+    return rows
+
+
+def mean_over_tasks(per_task: list[dict[str, Any]], point: str, samples: str) -> dict[str, Any]:
+    """The mean over tasks of each task's `point` statistic, with a 95 % CI from the tasks'
+    bootstrap `samples` averaged resample by resample (stratified by task); no CI where a task
+    has none."""
+    ci = None
+    if all(task[samples] is not None for task in per_task):
+        # a crossed bootstrap may keep fewer resamples than asked (one missed every cell)
+        size = min(len(task[samples]) for task in per_task)
+        means = np.mean([task[samples][:size] for task in per_task], axis=0)
+        ci = [float(np.quantile(means, 0.025)), float(np.quantile(means, 0.975))]
+    return {point: float(np.mean([task[point] for task in per_task])), "ci": ci}
 
 
 def baseline_of(group: Group, baselines: list[Group], keys: list[str]) -> Group | None:
@@ -511,6 +666,8 @@ def _without_samples(entries: list[dict[str, Any]]) -> None:
         for measure in entry["measures"].values():
             if measure.get("paired_difference"):
                 measure["paired_difference"].pop("_means", None)
+            if measure.get("probability_of_improvement"):
+                measure["probability_of_improvement"].pop("_samples", None)
 
 
 def build_report(
@@ -575,6 +732,7 @@ def build_report(
                 }
             comparisons.append(entry)
     across_tasks = aggregate_over_tasks(comparisons, by)
+    scores_across_tasks = scores_over_tasks(groups, by, k, reps, seed)
     # an arm that shares no source (or stage-one seed) with its baseline says nothing; left out
     # after the mean over tasks, which must not average over fewer tasks because of it
     comparisons = [entry for entry in comparisons if says_something(entry)]
@@ -584,6 +742,7 @@ def build_report(
         "compare": None if compare is None else f"{compare[0]}={compare[1]}",
         "last_k": k,
         "bootstrap": {"reps": reps, "seed": seed, "confidence": 0.95},
+        "runs": runs_summary(runs),
         "definitions": {
             **{name: text.format(k=k) for name, text in MEASURE_TEXT.items()},
             "run": "one replicate: (source dataset, stage-one seed of the artifact, training "
@@ -600,14 +759,19 @@ def build_report(
             "paired_difference": "mean over the arm's runs of run - the baseline's run of the "
             "same source and training seed; 95 % CI from a crossed bootstrap (training seeds "
             "and stage-one seeds resampled independently, sources as strata)",
-            "across_tasks": "mean over tasks of each task's mean paired difference; 95 % CI "
-            "from the tasks' bootstraps averaged resample by resample (stratified by task)",
+            "across_tasks": "mean over tasks of each task's mean paired difference, and of "
+            "each task's P(improvement) (rliable's aggregate over tasks); 95 % CIs from the "
+            "tasks' bootstraps averaged resample by resample (stratified by task)",
+            "scores_across_tasks": "per arm, the IQM and the mean of its runs' scores on every "
+            "task, each task weighing the same (rliable's aggregate over tasks; a run straddling "
+            "a quartile counts in part); 95 % CIs resampling each source's runs within it",
             "scores": "D4RL-normalized returns on the runs' data (locally built Gymnasium v5 "
             "datasets scored with D4RL's reference returns, unless the runs say otherwise)",
         },
         "groups": rows,
         "comparisons": comparisons,
         "across_tasks": across_tasks,
+        "scores_across_tasks": scores_across_tasks,
     }
 
 
@@ -694,15 +858,36 @@ def comparison_rows(report: dict[str, Any]) -> tuple[list[str], list[list[str]]]
     return columns, rows
 
 
+def scores_across_task_rows(report: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
+    """Each arm's scores aggregated over tasks: IQM and mean [95 % CI] of each measure."""
+    columns = ["arm", "tasks", "runs"]
+    for name in MEASURES:
+        text = report["definitions"][name]
+        columns += [f"{text}: IQM [95% CI]", f"{text}: mean [95% CI]"]
+    rows = []
+    for entry in report.get("scores_across_tasks", []):
+        row = [entry["arm"], ", ".join(entry["tasks"]), str(entry["n_runs"])]
+        for name in MEASURES:
+            m = entry["measures"][name]
+            row += [interval_text(m, "iqm"), interval_text(m, "mean")]
+        rows.append(row)
+    return columns, rows
+
+
 def across_task_rows(report: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
     """The aggregate over tasks of each arm's paired difference."""
     columns = ["arm", "tasks"]
-    columns += [f"{report['definitions'][name]}: mean diff [95% CI]" for name in MEASURES]
+    for name in MEASURES:
+        text = report["definitions"][name]
+        columns += [f"{text}: mean diff [95% CI]", f"{text}: P(improvement) [95% CI]"]
     rows = []
     for entry in report.get("across_tasks", []):
         row = [entry["arm"], ", ".join(entry["tasks"])]
         for name in MEASURES:
-            row.append(difference_text(entry["measures"].get(name)))
+            measure = entry["measures"].get(name)
+            row.append(difference_text(measure))
+            # reports written before the mean over tasks carried P(improvement) lack it
+            row.append(probability_text(measure and measure.get("probability_of_improvement")))
         rows.append(row)
     return columns, rows
 
@@ -719,11 +904,58 @@ def replicates_text(group: dict[str, Any]) -> str:
     return f"{group['n_runs']} ({'' if filled else 'of '}{text})"
 
 
+def runs_text(count: int) -> str:
+    return f"{count} run{'' if count == 1 else 's'}"
+
+
+def provenance_lines(report: dict[str, Any]) -> list[str]:
+    """report.md's header: when, by which command and on which code the report was written
+    (where the command added that), and on which CPUs, when and under what load the runs were
+    trained."""
+    lines = []
+    written = report.get("written")
+    if written:
+        versions = written["versions"]
+        commit = versions.get("git_commit")
+        code = f"commit {commit[:12]}" if commit else "unknown commit (not a git checkout)"
+        code += " with local edits" if versions.get("git_modified") else ""
+        command = written["command"]
+        if len(command) > LONG_COMMAND:  # a list of run folders; report.json keeps it whole
+            command = command[:LONG_COMMAND].rsplit(" ", 1)[0] + " … (whole in report.json)"
+        lines.append(
+            f"- Written {written['utc']} (UTC) by `{command}`; code: {code} "
+            f"(hipode-pipeline {versions.get('hipode_pipeline')})."
+        )
+    summary = report.get("runs")
+    if summary:
+        cpus = ", ".join(f"{cpu} ({runs_text(n)})" for cpu, n in summary["cpus"].items())
+        lines.append(f"- {runs_text(summary['n_runs'])}, trained on CPUs: {cpus}.")
+        finished, load = summary["finished_utc"], summary["load_average_1min"]
+        lines.append(
+            f"- Finished between {finished['earliest']} and {finished['latest']} (UTC)"
+            if finished["earliest"]
+            else "- Finish times not recorded"
+        )
+        if finished["earliest"] and finished["not_recorded"]:
+            lines[-1] += f"; {runs_text(finished['not_recorded'])} without a finish time"
+        lines[-1] += "."
+        lines.append(
+            f"- 1-minute load average at their finish: {load['min']:.2f} to {load['max']:.2f}"
+            if load["min"] is not None
+            else "- Load average at their finish not recorded"
+        )
+        if load["min"] is not None and load["not_recorded"]:
+            lines[-1] += f"; {runs_text(load['not_recorded'])} without one"
+        lines[-1] += "."
+    return [*lines, ""] if lines else []
+
+
 def markdown(report: dict[str, Any]) -> str:
     columns, rows = table_rows(report)
     lines = [
         "# Scores across seeds",
         "",
+        *provenance_lines(report),
         f"Grouped by {', '.join(report['by'])}. Scores: {report['definitions']['scores']}. "
         f"Intervals: {report['definitions']['ci']} ({report['bootstrap']['reps']} resamples, "
         f"seed {report['bootstrap']['seed']}); they are over seeds, not evaluation episodes. "
@@ -731,23 +963,24 @@ def markdown(report: dict[str, Any]) -> str:
         "",
         _md_table(columns, rows),
     ]
-    if report["comparisons"]:
-        columns, rows = comparison_rows(report)
-        lines += [
-            "",
-            f"Against {report['compare']} (paired difference: "
-            f"{report['definitions']['paired_difference']}):",
-            "",
-            _md_table(columns, rows),
-        ]
-    if report.get("across_tasks"):
-        columns, rows = across_task_rows(report)
-        lines += [
-            "",
-            f"Across tasks ({report['definitions']['across_tasks']}):",
-            "",
-            _md_table(columns, rows),
-        ]
+    definitions = report["definitions"]
+    sections = (
+        (
+            "comparisons",
+            comparison_rows,
+            f"Against {report['compare']} (paired difference: {definitions['paired_difference']}):",
+        ),
+        (
+            "scores_across_tasks",
+            scores_across_task_rows,
+            f"Scores across tasks ({definitions['scores_across_tasks']}):",
+        ),
+        ("across_tasks", across_task_rows, f"Across tasks ({definitions['across_tasks']}):"),
+    )
+    for key, section_rows, title in sections:
+        if report.get(key):
+            columns, rows = section_rows(report)
+            lines += ["", title, "", _md_table(columns, rows)]
     return "\n".join(lines) + "\n"
 
 

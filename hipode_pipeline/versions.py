@@ -26,16 +26,16 @@ ARTIFACT_CODE = (*GENERATOR_CODE, "generate.py", "envs.py")
 ROLLOUT_CODE = (*ARTIFACT_CODE, "rollouts.py")
 
 
-def package_versions() -> dict[str, str | bool | None]:
-    """Versions of this package, its numeric stack, Python, the CPU (the same seed can give other
-    floats on another one), the git commit and whether the package's files differ from it (None
-    if unknown)."""
+def package_versions(extra: tuple[str, ...] = ()) -> dict[str, str | bool | None]:
+    """Versions of this package, its numeric stack (and the `extra` packages an output also
+    depends on), Python, the CPU (the same seed can give other floats on another one), the git
+    commit and whether the package's files differ from it (None if unknown)."""
     versions: dict[str, str | bool | None] = {
         "hipode_pipeline": hipode_pipeline.__version__,
         "python": platform.python_version(),
         "cpu": cpu_name(),
     }
-    for name in VERSIONED_PACKAGES:
+    for name in (*VERSIONED_PACKAGES, *extra):
         try:
             versions[name] = metadata.version(name)
         except metadata.PackageNotFoundError:

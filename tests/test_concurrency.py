@@ -21,7 +21,9 @@ from hipode_pipeline.errors import OverwriteError
 from hipode_pipeline.validation import validate_artifact
 
 REPO = Path(__file__).resolve().parent.parent
-TIMEOUT = 120
+# a deadlock guard, not a speed check: on slow CPUs, beside another test worker, two quick
+# stage ones in a row take minutes
+TIMEOUT = 360
 
 # Runs `hipode ARGS` after a rendezvous: each process waits at its first call to
 # datasets_root/use_datasets_root (reached before any existence check, old code and new) until

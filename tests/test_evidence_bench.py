@@ -79,6 +79,59 @@ def test_report_versus_rollouts_compares_each_arm_with_the_rollouts():
         assert command[command.index("--out") + 1] == str(Path(out))
 
 
+def test_report_design_takes_the_design_runs_alone(monkeypatch):
+    monkeypatch.chdir(REPO)
+    folders = ["bench/evidence/runs/a/run-1", "bench/evidence/runs/b/run-2"]
+    monkeypatch.setattr(evidence, "design_folders", lambda: folders)
+    for argv, out in (
+        ([], "bench/evidence/report/design"),
+        (["--versus-rollouts"], "bench/evidence/report/versus-rollouts/design"),
+    ):
+        command = evidence.report(evidence.main_parser().parse_args(["report", "--design", *argv]))
+        assert command[1 : command.index("--by")] == folders
+        assert command[command.index("--out") + 1] == str(Path(out))
+    with pytest.raises(SystemExit):  # one grouping at a time
+        evidence.main_parser().parse_args(["report", "--design", "--by-source"])
+
+
+def design_run(source, augmentation, stage_one, seed, learner="iql", steps=200_000):
+    from hipode_pipeline.report import Run
+
+    keys = {
+        "source_sha256": source,
+        "learner": learner,
+        "task": "walker2d-m-r",
+        "steps": steps,
+        "augmentation": augmentation,
+        "artifact_seed": stage_one,
+        "seed": seed,
+    }
+    return Run(Path(f"{source}/{augmentation}-{stage_one}/{learner}-seed{seed}"), keys, [], [])
+
+
+def test_the_design_takes_full_grids_and_leaves_sources_stopped_early():
+    import evidence_design
+
+    full = [design_run("full", "none", None, seed) for seed in range(5)]
+    full += [design_run("full", "hipode", a, seed) for a in (0, 1, 2) for seed in range(5)]
+    # the rollouts hold one full stage-one seed: below the design's two
+    rollouts = [design_run("full", "model-rollouts", 0, seed) for seed in range(5)]
+    rollouts += [design_run("full", "model-rollouts", 1, seed) for seed in range(4)]
+    # another learner and budget on the same source are cells of their own
+    other = [design_run("full", "none", None, seed, learner="td3bc") for seed in range(5)]
+    diagnostic = [design_run("full", "hipode", 3, seed, steps=500_000) for seed in range(5)]
+    early = [design_run("early", "none", None, seed) for seed in range(4)]
+    early += [design_run("early", "hipode", a, seed) for a in (0, 1) for seed in range(5)]
+    runs = full + rollouts + other + diagnostic + early
+    chosen = evidence_design.design_runs(runs, evidence.budget)
+    # the whole grid of the full arms, η = 0 of both learners, nothing else, in the order given
+    assert chosen == full + other
+    full_rollouts = rollouts + [design_run("full", "model-rollouts", 1, 4)]
+    assert evidence_design.design_runs(full + full_rollouts, evidence.budget) == (
+        full + full_rollouts
+    )
+
+
 REPO = BENCH.parent
 
 
@@ -155,6 +208,16 @@ def test_a_report_of_other_runs_than_the_pooled_one_is_refused(tmp_path, monkeyp
     assert "python bench/evidence.py report --versus-rollouts` again" in str(error.value)
     (tmp_path / "versus-rollouts" / "report.json").write_text(json.dumps(pooled))
     assert regenerate(table, reports=tmp_path)[1]  # the same runs: its rows replace the stale one
+    # a design report holds the design's share of the pooled runs: every pooled run is too many
+    (tmp_path / "design").mkdir()
+    (tmp_path / "design" / "report.json").write_text(json.dumps(pooled))
+    design = table.replace("report=versus-rollouts", "report=design")
+    with pytest.raises(evidence_tables.TableError, match="design picks from") as error:
+        regenerate(design, reports=tmp_path)
+    assert "python bench/evidence.py report --design` again" in str(error.value)
+    committed = evidence.REPORT / "design" / "report.json"
+    (tmp_path / "design" / "report.json").write_text(committed.read_text())
+    assert regenerate(design, reports=tmp_path)[1]
 
 
 def write_scores(run_dir, steps, curve, speed=100.0):

@@ -4,6 +4,7 @@ against a baseline arm, curves, the output files and clear errors."""
 from __future__ import annotations
 
 import json
+import shlex
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +26,7 @@ from hipode_pipeline.report import (
     plot_curves,
     replicates_text,
     update_count,
+    weighted_iqm,
     write_report,
 )
 from hipode_pipeline.report import markdown as report_markdown
@@ -43,6 +45,7 @@ def write_run(
     method: str | None = None,
     steps: int | None = None,
     source: str | None = None,
+    finish: dict | None = None,
 ):
     folder.mkdir(parents=True)
     evaluations = [{"step": 100 * (i + 1), "score_mean": s} for i, s in enumerate(scores)]
@@ -60,6 +63,7 @@ def write_run(
                 "evaluations": evaluations,
                 "data_identity": identity,
                 **({} if steps is None else {"steps": steps}),
+                **(finish or {}),
             }
         )
     )
@@ -333,6 +337,17 @@ def test_comparisons_are_aggregated_over_tasks(tmp_path):
     assert last["mean"] == pytest.approx((5 + 15) / 2 + 1) and last["pairs"] == 6
     # every resample averages the two tasks' resampled seed noise (each within 0..2)
     assert 10.0 <= last["ci"][0] < 11.0 < last["ci"][1] <= 12.0
+    # P(improvement) over tasks is the mean of the tasks' own (rliable's aggregate): HIPODE's
+    # runs beat 6 of 9 η = 0 runs on hopper-m-r (gain 5) and 8 of 9 on walker2d-m-r (gain 15)
+    chance = last["probability_of_improvement"]
+    per_task = [c["measures"]["last"]["probability_of_improvement"] for c in report["comparisons"]]
+    assert sorted(p["probability"] for p in per_task) == pytest.approx([6 / 9, 8 / 9])
+    assert chance["probability"] == pytest.approx((6 / 9 + 8 / 9) / 2)
+    low, high = chance["ci"]
+    # a mean of two tasks' bootstraps is narrower than the wider of them
+    assert 0.0 <= low < chance["probability"] < high <= 1.0
+    assert high - low < max(p["ci"][1] - p["ci"][0] for p in per_task)
+    assert "_samples" not in json.dumps(report) and "_means" not in json.dumps(report)
     markdown_text = report_markdown(report)
     assert "Across tasks" in markdown_text and "+11.0" in markdown_text
     # the curves: a panel per task (their scores share no scale), arms labelled without it
@@ -342,6 +357,37 @@ def test_comparisons_are_aggregated_over_tasks(tmp_path):
     assert all(group["n_runs"] == 3 for _, group in panels["walker2d-m-r"])
     plot_curves(report, tmp_path / "curves.png")
     assert (tmp_path / "curves.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_weighted_iqm_is_rliables_with_equal_weights_and_counts_part_of_a_straddling_run():
+    from rliable import metrics
+
+    rng = np.random.default_rng(0)
+    values = rng.normal(size=(3, 12))
+    equal = np.full(12, 1 / 12)
+    expected = [metrics.aggregate_iqm(row[:, None]) for row in values]
+    assert weighted_iqm(values, equal) == pytest.approx(expected)
+    # four equal runs: the middle half is 2 and 3
+    assert weighted_iqm(np.array([1.0, 2.0, 3.0, 100.0]), np.full(4, 0.25)) == pytest.approx(2.5)
+    # weights 0.1, 0.4, 0.4, 0.1: the middle half lies within the two heavy runs
+    weights = np.array([0.1, 0.4, 0.4, 0.1])
+    assert weighted_iqm(np.array([-50.0, 2.0, 4.0, 90.0]), weights) == pytest.approx(3.0)
+
+
+def test_scores_are_aggregated_over_tasks_each_task_weighing_the_same(tmp_path):
+    runs = tmp_path / "runs"
+    write_two_tasks(runs, {"hopper-m-r": 5.0, "walker2d-m-r": 15.0}, noise=1.0)
+    # a fourth η = 0 seed on hopper-m-r only: tasks, not runs, weigh the same
+    write_run(runs / "hopper-m-r" / "s3", data="source", seed=3, scores=[95.0])
+    report = build_report(find_runs([runs]), by=POOLED, compare=("augmentation", "none"), reps=2000)
+    rows = {row["key"]["augmentation"]: row for row in report["scores_across_tasks"]}
+    none = rows["none"]["measures"]["last"]
+    assert rows["none"]["n_runs"] == 7 and rows["none"]["tasks"] == ["hopper-m-r", "walker2d-m-r"]
+    hopper, walker = np.mean([20.0, 30.0, 45.0, 95.0]), np.mean([20.0, 30.0, 45.0])
+    assert none["mean"] == pytest.approx((hopper + walker) / 2)
+    assert none["mean_ci"][0] < none["mean"] < none["mean_ci"][1]
+    assert none["iqm_ci"][0] <= none["iqm"] <= none["iqm_ci"][1]
+    assert "Scores across tasks" in report_markdown(report)
 
 
 def test_a_source_with_a_single_pair_leaves_the_pooled_difference_without_an_interval(tmp_path):
@@ -473,7 +519,7 @@ def test_probability_of_improvement_compares_runs_of_the_same_source_only(tmp_pa
         tmp_path / "ties", {"a": ([50.0, 60.0], [50.0, 40.0]), "b": ([10.0], [10.0])}
     )
     tied = improvement_within_sources(mine, theirs, "last", 1, 500, 0)
-    assert tied == {"probability": pytest.approx(4 / 5), "ci": None, "sources": 2}
+    assert tied == {"probability": pytest.approx(4 / 5), "ci": None, "sources": 2, "_samples": None}
 
 
 def test_one_run_or_one_pair_is_reported_without_an_interval(tmp_path):
@@ -621,6 +667,68 @@ def test_bad_inputs_are_named(tmp_path, two_arms):
         find_runs([bad])
     with pytest.raises(SettingError, match="--compare"):
         build_report(find_runs([two_arms / "source-0"]), compare=("eta", "0.5"))
+    for finish, field in (
+        ({"cpu": 7}, "cpu"),
+        ({"finished_utc": "2026-01-01T09:30:00"}, "finished_utc"),  # no offset
+        ({"load_average": ["high"]}, "load_average"),
+    ):
+        folder = tmp_path / f"bad-{field}"
+        write_run(folder, data="source", seed=0, scores=[1.0], finish=finish)
+        with pytest.raises(DataFormatError, match=f"field '{field}'"):
+            find_runs([folder])
+
+
+@pytest.fixture
+def recorded_runs(tmp_path):
+    """Four runs of one arm: two on CPU A (one finished at +02:00), one on CPU B without a
+    finish time, one recording none of it (written before runs recorded their machine)."""
+    finishes = [
+        {"cpu": "CPU A", "finished_utc": "2026-01-02T14:00:00+02:00", "load_average": [2.5, 2, 1]},
+        {"cpu": "CPU A", "finished_utc": "2026-01-01T09:30:00+00:00", "load_average": [1.0, 1, 1]},
+        {"cpu": "CPU B", "load_average": [4.25, 3, 2]},
+        {},
+    ]
+    for seed, finish in enumerate(finishes):
+        folder = tmp_path / "runs" / f"source-{seed}"
+        write_run(folder, data="source", seed=seed, scores=[seed, 2.0 * seed], finish=finish)
+    return tmp_path / "runs"
+
+
+def test_the_runs_summary_says_on_which_cpus_when_and_under_what_load(recorded_runs):
+    report = build_report(find_runs([recorded_runs]), reps=200)
+    assert report["runs"] == {
+        "n_runs": 4,
+        "cpus": {"CPU A": 2, "CPU B": 1, "not recorded": 1},
+        "finished_utc": {
+            "earliest": "2026-01-01T09:30:00+00:00",
+            "latest": "2026-01-02T12:00:00+00:00",
+            "not_recorded": 2,
+        },
+        "load_average_1min": {"min": 1.0, "max": 4.25, "not_recorded": 1},
+    }
+    # without the command's block (when, by what command and code), only the runs' lines
+    assert "Written" not in report_markdown(report)
+
+
+def test_the_cli_records_when_by_what_command_and_code_it_wrote(tmp_path, recorded_runs):
+    out = tmp_path / "report"
+    args = ["report", str(recorded_runs), "--out", str(out), "--reps", "200", "--seed", "3"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    written = json.loads((out / "report.json").read_text())["written"]
+    # the arguments as passed, in the command's order, after the program's name
+    command = shlex.join(["hipode", *args[:2], "--reps", "200", "--seed", "3", "--out", str(out)])
+    assert written["command"] == command
+    assert {"git_commit", "git_modified", "numpy"} <= set(written["versions"])
+    markdown = (out / "report.md").read_text()
+    assert f"by `{command}`; code: " in markdown
+    cpus = "- 4 runs, trained on CPUs: CPU A (2 runs), CPU B (1 run), not recorded (1 run).\n"
+    assert cpus in markdown
+    assert (
+        "- Finished between 2026-01-01T09:30:00+00:00 and 2026-01-02T12:00:00+00:00 (UTC); "
+        "2 runs without a finish time." in markdown
+    )
+    assert "- 1-minute load average at their finish: 1.00 to 4.25; 1 run without one." in markdown
 
 
 def test_cli_writes_every_format_and_refuses_to_overwrite(tmp_path, two_arms):

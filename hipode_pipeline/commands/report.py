@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+import shlex
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
 from hipode_pipeline import console
 from hipode_pipeline.commands.common import ForceFlag, JsonFlag, output_folder, user_errors
 from hipode_pipeline.errors import OverwriteError
+from hipode_pipeline.machine import utc_now
 from hipode_pipeline.report import (
     OUTPUTS,
     across_task_rows,
@@ -21,10 +23,44 @@ from hipode_pipeline.report import (
     table_rows,
     write_report,
 )
+from hipode_pipeline.versions import package_versions
+
+PROGRAM = ("hipode", "report")  # how the report names its command, wherever it was run from
+
+
+def command_line(ctx: typer.Context) -> str:
+    """The command as run: `hipode report` and the arguments the user passed (defaults left
+    out), in the command's order. Rebuilt from the parsed parameters: click keeps no raw
+    arguments, and sys.argv is another program's where the app is called from Python (tests,
+    bench/evidence.py)."""
+    words = list(PROGRAM)
+    for param in ctx.command.params:
+        source = ctx.get_parameter_source(param.name)
+        # typer carries its own copy of click: its enum is compared by name
+        if source is None or source.name != "COMMANDLINE":
+            continue
+        value = ctx.params[param.name]
+        values = list(value) if isinstance(value, list | tuple) else [value]
+        if param.param_type_name == "argument":
+            words += [str(v) for v in values]
+        elif getattr(param, "is_flag", False):
+            words.append(param.opts[0] if value else param.secondary_opts[0])
+        else:
+            words += [word for v in values for word in (param.opts[0], str(v))]
+    return shlex.join(words)
+
+
+def written_block(ctx: typer.Context) -> dict[str, Any]:
+    """When, by which command and on which code (package versions, git commit and local edits)
+    the report was written."""
+    # the statistics are rliable's and scipy's: their versions belong with the numbers
+    versions = package_versions(extra=("rliable", "scipy"))
+    return {"utc": utc_now(), "command": command_line(ctx), "versions": versions}
 
 
 @user_errors
 def report_command(
+    ctx: typer.Context,
     run_dirs: Annotated[
         list[Path],
         typer.Argument(help="Run folders, or folders holding them (searched for scores.json)."),
@@ -62,7 +98,10 @@ def report_command(
     if existing and not force:
         raise OverwriteError(f"{', '.join(existing)} already exist(s); pass --force to replace")
     runs = find_runs(run_dirs)
-    report = build_report(runs, by=keys, compare=baseline, k=last_k, reps=reps, seed=seed)
+    report = {
+        "written": written_block(ctx),
+        **build_report(runs, by=keys, compare=baseline, k=last_k, reps=reps, seed=seed),
+    }
     paths = write_report(report, out)
     if json_output:
         console.print_json(report)
