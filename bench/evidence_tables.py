@@ -190,6 +190,8 @@ def across_rows(report: dict[str, Any], report_name: str, params: dict[str, str]
 def score_rows(report: dict[str, Any], report_name: str, params: dict[str, str]) -> list[str]:
     """One row per arm: its runs' scores aggregated over tasks (IQM and mean, tasks weighing
     the same)."""
+    if "scores_across_tasks" not in report:
+        raise TableError("no scores across tasks: an older report; run its report command again")
     found = [e for e in report["scores_across_tasks"] if wanted({"task": None, **e["key"]}, params)]
     rows = []
     for entry in sorted(found, key=lambda e: rank(AUGMENTATION_ORDER, e["key"]["augmentation"])):
@@ -200,6 +202,7 @@ def score_rows(report: dict[str, Any], report_name: str, params: dict[str, str])
                     entry["key"]["augmentation"],
                     ", ".join(entry["tasks"]),
                     str(entry["n_runs"]),
+                    str(entry["sources"]),
                     interval_text(measures["last"], "iqm"),
                     interval_text(measures["last"], "mean"),
                     interval_text(measures["last_k_mean"], "iqm"),

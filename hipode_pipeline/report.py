@@ -527,7 +527,9 @@ def paired_difference(cells: dict[tuple, float], reps: int, seed: int) -> dict[s
     }
 
 
-def aggregate_over_tasks(comparisons: list[dict[str, Any]], by: tuple[str, ...]) -> list[dict]:
+def aggregate_over_tasks(
+    comparisons: list[dict[str, Any]], by: tuple[str, ...], seed: int = 0
+) -> list[dict]:
     """Per arm key without the task: the mean over tasks of each task's mean paired difference,
     with a 95 % CI from the tasks' bootstraps combined resample by resample (stratified by task);
     no CI where a task has none."""
@@ -551,12 +553,12 @@ def aggregate_over_tasks(comparisons: list[dict[str, Any]], by: tuple[str, ...])
                 continue
             chances = [entry["measures"][name]["probability_of_improvement"] for entry in entries]
             row["measures"][name] = {
-                **mean_over_tasks(diffs, "mean", "_means"),
+                **mean_over_tasks(diffs, "mean", "_means", seed),
                 "pairs": int(sum(d["pairs"] for d in diffs)),
                 # rliable's P(improvement) over several tasks: the mean of the tasks' own
                 "probability_of_improvement": None
                 if any(p is None for p in chances)
-                else mean_over_tasks(chances, "probability", "_samples"),
+                else mean_over_tasks(chances, "probability", "_samples", seed),
             }
         if row["measures"]:  # an arm with no pair on some task has no mean over the tasks
             rows.append(row)
@@ -595,11 +597,10 @@ def scores_over_tasks(
         weights = np.concatenate(
             [np.full(len(g.runs), 1.0 / (len(members) * len(g.runs))) for g in members]
         )
-        sources = [run.replicate[0] for run in runs]
+        # a run without a recorded source must still be resampled within its own task
+        strata = [(g.key["task"], run.replicate[0]) for g in members for run in g.runs]
         picks = (
-            within_strata(sources, reps, np.random.default_rng(seed))
-            if has_spread(sources)
-            else None
+            within_strata(strata, reps, np.random.default_rng(seed)) if has_spread(strata) else None
         )
         row: dict[str, Any] = {
             "arm": " ".join(f"{k2}={_shown(v)}" for k2, v in key),
@@ -607,6 +608,7 @@ def scores_over_tasks(
             "tasks": [group.key["task"] for group in members],
             "steps": sorted({run.keys.get("steps") for run in runs}, key=str),
             "n_runs": len(runs),
+            "sources": len(set(strata)),
             "measures": {},
         }
         for name in MEASURES:
@@ -630,7 +632,9 @@ def scores_over_tasks(
     return rows
 
 
-def mean_over_tasks(per_task: list[dict[str, Any]], point: str, samples: str) -> dict[str, Any]:
+def mean_over_tasks(
+    per_task: list[dict[str, Any]], point: str, samples: str, seed: int = 0
+) -> dict[str, Any]:
     """The mean over tasks of each task's `point` statistic, with a 95 % CI from the tasks'
     bootstrap `samples` averaged resample by resample (stratified by task); no CI where a task
     has none."""
@@ -638,7 +642,13 @@ def mean_over_tasks(per_task: list[dict[str, Any]], point: str, samples: str) ->
     if all(task[samples] is not None for task in per_task):
         # a crossed bootstrap may keep fewer resamples than asked (one missed every cell)
         size = min(len(task[samples]) for task in per_task)
-        means = np.mean([task[samples][:size] for task in per_task], axis=0)
+        # each task's bootstrap drew from the same seed: tasks of one size drew the same indices,
+        # so each task's resamples are shuffled apart to make the strata independent
+        shuffled = [
+            np.random.default_rng([seed, index]).permutation(task[samples])[:size]
+            for index, task in enumerate(per_task)
+        ]
+        means = np.mean(shuffled, axis=0)
         ci = [float(np.quantile(means, 0.025)), float(np.quantile(means, 0.975))]
     return {point: float(np.mean([task[point] for task in per_task])), "ci": ci}
 
@@ -731,7 +741,7 @@ def build_report(
                     "paired_difference": paired_difference(cells, reps, seed),
                 }
             comparisons.append(entry)
-    across_tasks = aggregate_over_tasks(comparisons, by)
+    across_tasks = aggregate_over_tasks(comparisons, by, seed)
     scores_across_tasks = scores_over_tasks(groups, by, k, reps, seed)
     # an arm that shares no source (or stage-one seed) with its baseline says nothing; left out
     # after the mean over tasks, which must not average over fewer tasks because of it
@@ -763,8 +773,9 @@ def build_report(
             "each task's P(improvement) (rliable's aggregate over tasks); 95 % CIs from the "
             "tasks' bootstraps averaged resample by resample (stratified by task)",
             "scores_across_tasks": "per arm, the IQM and the mean of its runs' scores on every "
-            "task, each task weighing the same (rliable's aggregate over tasks; a run straddling "
-            "a quartile counts in part); 95 % CIs resampling each source's runs within it",
+            "task, each task weighing the same (rliable's aggregate over tasks where every task "
+            "has as many runs and their total is a multiple of 4; otherwise a run straddling a "
+            "quartile counts in part); 95 % CIs resampling each source's runs within it",
             "scores": "D4RL-normalized returns on the runs' data (locally built Gymnasium v5 "
             "datasets scored with D4RL's reference returns, unless the runs say otherwise)",
         },

@@ -390,6 +390,52 @@ def test_scores_are_aggregated_over_tasks_each_task_weighing_the_same(tmp_path):
     assert "Scores across tasks" in report_markdown(report)
 
 
+def test_tasks_are_resampled_independently_in_the_mean_over_tasks(tmp_path):
+    runs = tmp_path / "runs"
+    # two tasks with the same pairs: each task's bootstrap drew the same indices from one seed
+    write_two_tasks(runs, {"hopper-m-r": 5.0, "walker2d-m-r": 5.0}, noise=4.0)
+    report = build_report(find_runs([runs]), by=POOLED, compare=("augmentation", "none"), reps=4000)
+    one = report["comparisons"][0]["measures"]["last"]["paired_difference"]["ci"]
+    assert report["comparisons"][1]["measures"]["last"]["paired_difference"]["ci"] == one
+    (across,) = report["across_tasks"]
+    both = across["measures"]["last"]["ci"]
+    # the mean of two independent resamples spreads 1/sqrt(2) as wide as one task's; aligned
+    # resamples would give the one task's interval back
+    assert 0.55 < (both[1] - both[0]) / (one[1] - one[0]) < 0.85
+
+
+def unrecorded_source(folder: Path) -> None:
+    path = folder / "scores.json"
+    record = json.loads(path.read_text())
+    del record["data_identity"]["source_sha256"]
+    path.write_text(json.dumps(record))
+
+
+def test_scores_over_tasks_weigh_each_task_the_same_and_resample_within_it(tmp_path):
+    runs = tmp_path / "runs"
+    # two runs on one task and four on the other: weights 1/4 and 1/8; sorted 0 | 1 2 3 4 | 10,
+    # the middle half of the weight is 1, 2, 3 and 4 (1/8 each)
+    for seed, score in enumerate([0.0, 10.0]):
+        write_run(runs / f"a{seed}", data="source", seed=seed, scores=[score], task="hopper-m-r")
+    for seed, score in enumerate([1.0, 2.0, 3.0, 4.0]):
+        write_run(runs / f"b{seed}", data="source", seed=seed, scores=[score], task="walker2d-m-r")
+    (row,) = build_report(find_runs([runs]), by=POOLED, reps=500)["scores_across_tasks"]
+    assert row["measures"]["last"]["iqm"] == pytest.approx(2.5)
+    assert row["measures"]["last"]["mean"] == pytest.approx((5.0 + 2.5) / 2)
+    assert row["sources"] == 2 and row["n_runs"] == 6
+    # runs that name no source are still resampled within their own task, never across tasks
+    runs = tmp_path / "unnamed"
+    for task, base in (("hopper-m-r", 0.0), ("walker2d-m-r", 100.0)):
+        for seed in range(4):
+            folder = runs / task / f"s{seed}"
+            write_run(folder, data="source", seed=seed, scores=[base + seed], task=task)
+            unrecorded_source(folder)
+    (row,) = build_report(find_runs([runs]), by=POOLED, reps=1000)["scores_across_tasks"]
+    low, high = row["measures"]["last"]["iqm_ci"]
+    assert row["measures"]["last"]["iqm"] == pytest.approx((2 + 3 + 100 + 101) / 4)
+    assert 49.0 < low <= high < 54.0
+
+
 def test_a_source_with_a_single_pair_leaves_the_pooled_difference_without_an_interval(tmp_path):
     # two sources of one task; the hipode arm has two training seeds on each, the rollout arm
     # one: sources are strata, so a lone pair would enter every resample unchanged
