@@ -115,7 +115,22 @@ class Group:
 
     @property
     def label(self) -> str:
-        return " ".join(f"{k}={_shown(v)}" for k, v in self.key.items())
+        return key_label(self.key.items())
+
+
+def key_label(pairs: Any) -> str:
+    """A group key as the tables name it: 'task=hopper-m-r learner=td3bc …'."""
+    return " ".join(f"{k}={_shown(v)}" for k, v in pairs)
+
+
+def without_task(items: list[Any], key_of: Any) -> dict[tuple, list[Any]]:
+    """`items` by their key without the task, in first-seen order: what a mean over tasks
+    aggregates."""
+    merged: dict[tuple, list[Any]] = {}
+    for item in items:
+        key = tuple((name, value) for name, value in key_of(item).items() if name != "task")
+        merged.setdefault(key, []).append(item)
+    return merged
 
 
 def _shown(value: Any) -> str:
@@ -339,6 +354,12 @@ def rliable_resamples(sizes: Sequence[int], reps: int, seed: int) -> list[np.nda
         np.random.set_state(caller_state)
 
 
+def bounds95(samples: np.ndarray) -> list[float]:
+    """The 2.5th and 97.5th percentile of bootstrap `samples`: a 95 % percentile interval."""
+    low, high = np.quantile(samples, [0.025, 0.975])
+    return [float(low), float(high)]
+
+
 def percentile_interval(samples: np.ndarray) -> np.ndarray:
     """2 x k: each column's 2.5th and 97.5th percentile of `samples` (reps x k), the percentile
     method rliable asks arch for."""
@@ -460,10 +481,9 @@ def improvement_within_sources(
         columns = rng.integers(w.shape[1], size=(reps, w.shape[1]))
         total += w[rows[:, :, None], columns[:, None, :]].sum(axis=(1, 2))
     samples = total / couples
-    low, high = np.quantile(samples, [0.025, 0.975])
     return {
         "probability": float(point),
-        "ci": [float(low), float(high)],
+        "ci": bounds95(samples),
         "sources": sources,
         "_samples": samples,
     }
@@ -516,9 +536,7 @@ def paired_difference(cells: dict[tuple, float], reps: int, seed: int) -> dict[s
     means = crossed_bootstrap(cells, reps, seed) if resamplable else None
     return {
         "mean": float(diffs.mean()),
-        "ci": None
-        if means is None
-        else [float(np.quantile(means, 0.025)), float(np.quantile(means, 0.975))],
+        "ci": None if means is None else bounds95(means),
         "seeds": sorted({key[2] for key in cells}),
         "artifact_seeds": sorted({key[1] for key in cells if key[1] is not None}),
         "pairs": len(cells),
@@ -535,14 +553,10 @@ def aggregate_over_tasks(
     no CI where a task has none."""
     if "task" not in by:
         return []
-    merged: dict[tuple, list[dict[str, Any]]] = {}
-    for entry in comparisons:
-        key = tuple((k, v) for k, v in entry["key"].items() if k != "task")
-        merged.setdefault(key, []).append(entry)
     rows = []
-    for key, entries in merged.items():
+    for key, entries in without_task(comparisons, lambda entry: entry["key"]).items():
         row: dict[str, Any] = {
-            "arm": " ".join(f"{k}={_shown(v)}" for k, v in key),
+            "arm": key_label(key),
             "key": dict(key),
             "tasks": [entry["key"]["task"] for entry in entries],
             "measures": {},
@@ -585,12 +599,8 @@ def scores_over_tasks(
     within it (sources as strata, so tasks too); no CI where a source holds a single run."""
     if "task" not in by:
         return []
-    merged: dict[tuple, list[Group]] = {}
-    for group in groups:
-        key = tuple((name, value) for name, value in group.key.items() if name != "task")
-        merged.setdefault(key, []).append(group)
     rows = []
-    for key, members in merged.items():
+    for key, members in without_task(groups, lambda group: group.key).items():
         if len(members) < 2:
             continue  # one task: its group's own row says it
         runs = [run for group in members for run in group.runs]
@@ -603,7 +613,7 @@ def scores_over_tasks(
             within_strata(strata, reps, np.random.default_rng(seed)) if has_spread(strata) else None
         )
         row: dict[str, Any] = {
-            "arm": " ".join(f"{k2}={_shown(v)}" for k2, v in key),
+            "arm": key_label(key),
             "key": dict(key),
             "tasks": [group.key["task"] for group in members],
             "steps": sorted({run.keys.get("steps") for run in runs}, key=str),
@@ -621,12 +631,8 @@ def scores_over_tasks(
             }
             if picks is not None:
                 resampled = values[picks]
-                for stat, samples in (
-                    ("iqm", weighted_iqm(resampled, weights)),
-                    ("mean", resampled @ weights),
-                ):
-                    low, high = np.quantile(samples, [0.025, 0.975])
-                    measure[f"{stat}_ci"] = [float(low), float(high)]
+                measure["iqm_ci"] = bounds95(weighted_iqm(resampled, weights))
+                measure["mean_ci"] = bounds95(resampled @ weights)
             row["measures"][name] = measure
         rows.append(row)
     return rows
@@ -648,8 +654,7 @@ def mean_over_tasks(
             np.random.default_rng([seed, index]).permutation(task[samples])[:size]
             for index, task in enumerate(per_task)
         ]
-        means = np.mean(shuffled, axis=0)
-        ci = [float(np.quantile(means, 0.025)), float(np.quantile(means, 0.975))]
+        ci = bounds95(np.mean(shuffled, axis=0))
     return {point: float(np.mean([task[point] for task in per_task])), "ci": ci}
 
 
@@ -835,20 +840,28 @@ def probability_text(p: dict[str, Any] | None) -> str:
     return f"{p['probability']:.2f} [{p['ci'][0]:.2f}, {p['ci'][1]:.2f}]"
 
 
-def table_rows(report: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
-    """The human table: per group, IQM and mean [95 % CI] of each measure, over n seeds."""
-    by = report["by"]
-    columns = [*by, "runs (training × stage-one seeds)"]
+def score_columns(report: dict[str, Any]) -> list[str]:
+    """Per measure, the IQM and the mean columns of a table of scores."""
+    columns = []
     for name in MEASURES:
         text = report["definitions"][name]
         columns += [f"{text}: IQM [95% CI]", f"{text}: mean [95% CI]"]
-    rows = []
-    for group in report["groups"]:
-        row = [_shown(group[k]) for k in by] + [replicates_text(group)]
-        for name in MEASURES:
-            m = group["measures"][name]
-            row += [interval_text(m, "iqm"), interval_text(m, "mean")]
-        rows.append(row)
+    return columns
+
+
+def score_cells(measures: dict[str, Any]) -> list[str]:
+    """Per measure, the IQM and the mean with their intervals."""
+    return [interval_text(measures[name], stat) for name in MEASURES for stat in ("iqm", "mean")]
+
+
+def table_rows(report: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
+    """The human table: per group, IQM and mean [95 % CI] of each measure, over n seeds."""
+    by = report["by"]
+    columns = [*by, "runs (training × stage-one seeds)", *score_columns(report)]
+    rows = [
+        [_shown(group[k]) for k in by] + [replicates_text(group)] + score_cells(group["measures"])
+        for group in report["groups"]
+    ]
     return columns, rows
 
 
@@ -871,17 +884,12 @@ def comparison_rows(report: dict[str, Any]) -> tuple[list[str], list[list[str]]]
 
 def scores_across_task_rows(report: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
     """Each arm's scores aggregated over tasks: IQM and mean [95 % CI] of each measure."""
-    columns = ["arm", "tasks", "runs"]
-    for name in MEASURES:
-        text = report["definitions"][name]
-        columns += [f"{text}: IQM [95% CI]", f"{text}: mean [95% CI]"]
-    rows = []
-    for entry in report.get("scores_across_tasks", []):
-        row = [entry["arm"], ", ".join(entry["tasks"]), str(entry["n_runs"])]
-        for name in MEASURES:
-            m = entry["measures"][name]
-            row += [interval_text(m, "iqm"), interval_text(m, "mean")]
-        rows.append(row)
+    columns = ["arm", "tasks", "runs", "sources", *score_columns(report)]
+    rows = [
+        [entry["arm"], ", ".join(entry["tasks"]), str(entry["n_runs"]), str(entry["sources"])]
+        + score_cells(entry["measures"])
+        for entry in report.get("scores_across_tasks", [])
+    ]
     return columns, rows
 
 
@@ -943,22 +951,33 @@ def provenance_lines(report: dict[str, Any]) -> list[str]:
         lines.append(f"- {runs_text(summary['n_runs'])}, trained on CPUs: {cpus}.")
         finished, load = summary["finished_utc"], summary["load_average_1min"]
         lines.append(
-            f"- Finished between {finished['earliest']} and {finished['latest']} (UTC)"
-            if finished["earliest"]
-            else "- Finish times not recorded"
+            recorded_line(
+                finished["earliest"]
+                and f"Finished between {finished['earliest']} and {finished['latest']} (UTC)",
+                "Finish times not recorded",
+                finished["not_recorded"],
+                "without a finish time",
+            )
         )
-        if finished["earliest"] and finished["not_recorded"]:
-            lines[-1] += f"; {runs_text(finished['not_recorded'])} without a finish time"
-        lines[-1] += "."
         lines.append(
-            f"- 1-minute load average at their finish: {load['min']:.2f} to {load['max']:.2f}"
-            if load["min"] is not None
-            else "- Load average at their finish not recorded"
+            recorded_line(
+                load["min"] is not None
+                and f"1-minute load average at their finish: {load['min']:.2f} to "
+                f"{load['max']:.2f}",
+                "Load average at their finish not recorded",
+                load["not_recorded"],
+                "without one",
+            )
         )
-        if load["min"] is not None and load["not_recorded"]:
-            lines[-1] += f"; {runs_text(load['not_recorded'])} without one"
-        lines[-1] += "."
     return [*lines, ""] if lines else []
+
+
+def recorded_line(text: str | bool | None, none_text: str, missing: int, without: str) -> str:
+    """A header line of what the runs recorded, naming how many lack it; `none_text` where
+    none does."""
+    if not text:
+        return f"- {none_text}."
+    return f"- {text}" + (f"; {runs_text(missing)} {without}" if missing else "") + "."
 
 
 def markdown(report: dict[str, Any]) -> str:
