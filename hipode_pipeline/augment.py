@@ -243,6 +243,16 @@ def run_augment(
         check_seed(seed)
         stage_one_threads("generate")  # a bad OMP_NUM_THREADS fails here, before any work
         torch_device = select_device(device)
+        generator_config, emulated = generator_config.on_device(torch_device, asked=extra)
+        if emulated:
+            console.err.print(
+                console.plain(
+                    f"bf16 matmuls are emulated on {torch_device} (native on CPUs with "
+                    f"AVX512-BF16 or AMX and on GPUs with bf16): {', '.join(emulated)} set to "
+                    f"fp32 (--set {emulated[0]}=bf16 insists)"
+                ),
+                soft_wrap=True,
+            )
         root = use_datasets_root(root)
         out_given = out is not None
         if out_given:
@@ -307,7 +317,15 @@ def run_augment(
 
         console.err.print(
             console.plain(
-                _plan_line(task, info, len(transitions), generation, generator_config, profile)
+                _plan_line(
+                    task,
+                    info,
+                    len(transitions),
+                    generation,
+                    generator_config,
+                    profile,
+                    torch_device,
+                )
                 + f"; {torch_device}, {stage_one_threads('train')} thread(s) training, "
                 f"{stage_one_threads('generate')} generating; -> {out}"
             ),
@@ -467,9 +485,11 @@ def _plan_line(
     generation: GenerationConfig,
     config: GeneratorConfig,
     profile: str,
+    device: torch.device,
 ) -> str:
     """What stage one is about to do, before it trains: data, settings, what differs."""
-    base = GeneratorConfig.profile(profile).to_dict()
+    # the profile as it trains on this device: a precision moved there has its own line
+    base = GeneratorConfig.profile(profile).on_device(device)[0].to_dict()
     # alpha and sigma are shown anyway (they are per task); the rest only when overridden
     changed = {
         k: v

@@ -29,3 +29,12 @@ def select_device(preferred: str | None = None) -> torch.device:
             f"device '{preferred}': expected 'auto', 'cpu' or 'cuda[:index]'"
         )
     return device
+
+
+def fast_bf16(device: torch.device) -> bool:
+    """Whether bfloat16 matmuls run natively here (CUDA with bf16, CPUs with AVX512-BF16/AMX);
+    elsewhere torch emulates them, far slower than fp32."""
+    if device.type == "cuda":
+        return torch.cuda.is_bf16_supported()
+    check = getattr(torch.cpu, "_is_avx512_bf16_supported", None)
+    return bool(check and check())

@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 import pytest
+import torch
 from test_train_cli import TINY
 from typer.testing import CliRunner
 
@@ -14,6 +15,7 @@ from hipode_pipeline.artifact import read_artifact
 from hipode_pipeline.cli import app
 from hipode_pipeline.errors import SettingError
 from hipode_pipeline.learners import TD3BCConfig
+from hipode_pipeline.models import generators
 from hipode_pipeline.models.generators import GeneratorConfig
 from hipode_pipeline.overrides import check_fields, read_overrides
 
@@ -94,7 +96,23 @@ def test_train_records_the_settings_and_refuses_bad_ones_before_any_folder(tmp_p
     assert json.loads(default.stdout)["run_dir"] != json.loads(ran.stdout)["run_dir"]
 
 
-def test_augment_takes_generator_settings(tmp_path, tiny_pair):
+@pytest.mark.parametrize("native", [True, False])
+def test_generator_bf16_falls_back_to_fp32_only_where_emulated_and_not_asked(monkeypatch, native):
+    monkeypatch.setattr(generators, "fast_bf16", lambda device: native)
+    config = GeneratorConfig()
+    assert config.cvae_precision == config.dynamics_precision == "bf16"
+    on_device, moved = config.on_device(torch.device("cpu"), asked={"dynamics_precision"})
+    if native:
+        assert on_device is config and moved == []
+    else:
+        assert moved == ["cvae_precision"]
+        assert on_device.cvae_precision == "fp32" and on_device.dynamics_precision == "bf16"
+        assert on_device.hash() != config.hash()  # the cache key follows the precision trained
+
+
+def test_augment_takes_generator_settings(tmp_path, tiny_pair, monkeypatch):
+    # as on a CPU without native bf16: stage one says so and trains and records fp32
+    monkeypatch.setattr(generators, "fast_bf16", lambda device: False)
     source, _ = tiny_pair
     base = ["augment", "hopper-m-r", "--source", source, "--profile", "quick"]
     runner = CliRunner()
@@ -109,3 +127,7 @@ def test_augment_takes_generator_settings(tmp_path, tiny_pair):
     assert built.exit_code == 0, built.output
     config = read_artifact(out).manifest["hyper_parameters"]["generator_config"]
     assert config["dynamics_members"] == 3 and config["value_steps"] == 40
+    assert config["cvae_precision"] == config["dynamics_precision"] == "fp32"
+    said = " ".join(built.output.split())
+    assert "bf16 matmuls are emulated" in said and "cvae_precision, dynamics_precision" in said
+    assert "profile quick with dynamics_members=3, value_steps=40;" in said  # not the moves

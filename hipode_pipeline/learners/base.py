@@ -14,7 +14,7 @@ from torch import nn
 
 from hipode_pipeline.data.normalizer import StateNormalizer
 from hipode_pipeline.data.transitions import Transitions
-from hipode_pipeline.device import select_device
+from hipode_pipeline.device import fast_bf16, select_device
 from hipode_pipeline.errors import HipodeError
 from hipode_pipeline.learners.stacked import init_generators
 from hipode_pipeline.overrides import check_fields
@@ -53,14 +53,6 @@ class LearnerConfig:
         """Build from a dict (a TOML table, CLI overrides), naming unknown keys and values of
         the wrong type clearly."""
         return cls(**check_fields(cls, values, f"{origin} ({cls.__name__})"))
-
-
-def fast_bf16(device: torch.device) -> bool:
-    """Whether bfloat16 matmuls run natively here (CUDA with bf16, CPUs with AVX512-BF16/AMX)."""
-    if device.type == "cuda":
-        return torch.cuda.is_bf16_supported()
-    check = getattr(torch.cpu, "_is_avx512_bf16_supported", None)
-    return bool(check and check())
 
 
 def polyak_(target: nn.Module, source: nn.Module, tau: float) -> None:

@@ -8,6 +8,7 @@ import dataclasses
 import hashlib
 import json
 import math
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -19,7 +20,7 @@ from torch import nn
 from hipode_pipeline.console import progress as progress_display
 from hipode_pipeline.data.normalizer import StateNormalizer
 from hipode_pipeline.data.transitions import Transitions
-from hipode_pipeline.device import select_device
+from hipode_pipeline.device import fast_bf16, select_device
 from hipode_pipeline.errors import DataFormatError, HipodeError, SettingError
 from hipode_pipeline.files import (
     file_sha256,
@@ -290,6 +291,21 @@ class GeneratorConfig:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> GeneratorConfig:
         return cls(**data)
+
+    def on_device(
+        self, device: torch.device, asked: Collection[str] = ()
+    ) -> tuple[GeneratorConfig, list[str]]:
+        """This config for `device`, and the precision fields it moved: a bf16 precision that
+        was not `asked` for becomes fp32 where bf16 is not native (torch emulates it there, far
+        slower than fp32), so a cache key and a manifest name the precision that trained."""
+        if fast_bf16(device):
+            return self, []
+        moved = [
+            name
+            for name in self.to_dict()
+            if name.endswith("_precision") and getattr(self, name) == "bf16" and name not in asked
+        ]
+        return dataclasses.replace(self, **{name: "fp32" for name in moved}), moved
 
     def hash(self) -> str:
         """sha256 over the sorted JSON of every field: the cache key of trained generators."""
