@@ -77,8 +77,10 @@ def run_one(
     steps: int,
     threads: int,
     seed: int,
+    evaluations: int = 10,
 ) -> dict:
-    """Train one model for `steps` steps; return steps/s and held-out losses."""
+    """Train one model for `steps` steps (`evaluations` held-out evaluations among them);
+    return steps/s and held-out losses."""
     torch.set_num_threads(threads)
     device = torch.device("cpu")
     models = generators.build_models(transitions.obs_dim, transitions.act_dim, config, seed)
@@ -95,7 +97,7 @@ def run_one(
             heldout_loss,
             data,
             seed=seed,
-            eval_every=max(1, steps // 10),
+            eval_every=max(1, steps // evaluations),
             checkpoint_every=steps + 1,
             checkpoint_path=Path(tmp) / "never.pt",
             after_step=models["value"].update_target if name == "value" else None,

@@ -11,7 +11,7 @@ import contextlib
 import hashlib
 import json
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -243,6 +243,7 @@ def run_augment(
         check_seed(seed)
         stage_one_threads("generate")  # a bad OMP_NUM_THREADS fails here, before any work
         torch_device = select_device(device)
+        as_asked = generator_config
         generator_config, emulated = generator_config.on_device(torch_device, asked=extra)
         if emulated:
             console.err.print(
@@ -313,7 +314,9 @@ def run_augment(
         # held to the end: a second augment into `out` waits, then finds it up to date
         held.enter_context(output_lock(out, command="hipode augment"))
         if out.exists() and not force:
-            return _reuse_existing(out, request, seconds)
+            # one built where bf16 is native answers the same command here too
+            native = replace(request, generator_config=as_asked.to_dict()) if emulated else None
+            return _reuse_existing(out, request, seconds, also=native)
 
         console.err.print(
             console.plain(
@@ -532,9 +535,13 @@ def _load_or_collect(
 
 
 def _reuse_existing(
-    out: Path, request: ArtifactRequest, seconds: dict[str, float]
+    out: Path,
+    request: ArtifactRequest,
+    seconds: dict[str, float],
+    also: ArtifactRequest | None = None,
 ) -> AugmentSummary:
-    """Keep an existing artifact built from the same request (after verifying it); refuse others."""
+    """Keep an existing artifact built from the same request, or from `also` (after verifying
+    it); refuse others."""
     clock = time.perf_counter()
     try:
         artifact = read_artifact(out)
@@ -542,7 +549,8 @@ def _reuse_existing(
         raise OverwriteError(
             f"{out} exists but is not a valid artifact ({error}); pass --force to replace it"
         ) from None
-    if artifact.manifest.get("request_key") != request.key():
+    accepted = {request.key()} | ({also.key()} if also is not None else set())
+    if artifact.manifest.get("request_key") not in accepted:
         stored_request = artifact.manifest.get("request")
         changed = request.differences(stored_request) if isinstance(stored_request, dict) else []
         raise OverwriteError(

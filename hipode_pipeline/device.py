@@ -35,6 +35,7 @@ def fast_bf16(device: torch.device) -> bool:
     """Whether bfloat16 matmuls run natively here (CUDA with bf16, CPUs with AVX512-BF16/AMX);
     elsewhere torch emulates them, far slower than fp32."""
     if device.type == "cuda":
-        return torch.cuda.is_bf16_supported()
+        # bf16 tensor cores from compute capability 8 (Ampere); older GPUs emulate it
+        return torch.cuda.get_device_capability(device)[0] >= 8
     check = getattr(torch.cpu, "_is_avx512_bf16_supported", None)
     return bool(check and check())

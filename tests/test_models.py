@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from hipode_pipeline.data.normalizer import StateNormalizer
-from hipode_pipeline.device import select_device
+from hipode_pipeline.device import fast_bf16, select_device
 from hipode_pipeline.errors import DataFormatError, HipodeError
 from hipode_pipeline.models import training
 from hipode_pipeline.models.cvae import CVAE
@@ -359,6 +359,14 @@ def test_state_normalizer_round_trips_numpy_and_torch(tmp_path):
     (tmp_path / "bad.json").write_text('{"mean": [0.0], "std": [0.0]}')
     with pytest.raises(DataFormatError, match="bad.json.*std"):
         StateNormalizer.load(tmp_path / "bad.json")
+
+
+@pytest.mark.parametrize(
+    ("capability", "native"), [((7, 5), False), ((8, 0), True), ((9, 0), True)]
+)
+def test_bf16_counts_as_native_on_a_gpu_only_from_ampere(monkeypatch, capability, native):
+    monkeypatch.setattr(torch.cuda, "get_device_capability", lambda device=None: capability)
+    assert fast_bf16(torch.device("cuda")) is native
 
 
 def test_select_device():

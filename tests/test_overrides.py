@@ -111,7 +111,8 @@ def test_generator_bf16_falls_back_to_fp32_only_where_emulated_and_not_asked(mon
 
 
 def test_augment_takes_generator_settings(tmp_path, tiny_pair, monkeypatch):
-    # as on a CPU without native bf16: stage one says so and trains and records fp32
+    # as on a CPU without native bf16: stage one says so and trains and records fp32, except
+    # where a setting asks for bf16
     monkeypatch.setattr(generators, "fast_bf16", lambda device: False)
     source, _ = tiny_pair
     base = ["augment", "hopper-m-r", "--source", source, "--profile", "quick"]
@@ -121,13 +122,39 @@ def test_augment_takes_generator_settings(tmp_path, tiny_pair, monkeypatch):
     wrong = runner.invoke(app, [*base, "--set", "dynamics_members=many"])
     assert wrong.exit_code != 0 and "dynamics_members: expected int" in wrong.output
     out = tmp_path / "custom.hdf5"
+    settings = ["dynamics_members=3", "value_steps=40", "dynamics_precision=bf16"]
+    settings.append("dynamics_steps=30")  # emulated bf16 is slow: a short fit
     built = runner.invoke(
-        app, [*base, "--set", "dynamics_members=3", "--set", "value_steps=40", "--out", str(out)]
+        app, [*base, *(x for s in settings for x in ("--set", s)), "--out", str(out)]
     )
     assert built.exit_code == 0, built.output
     config = read_artifact(out).manifest["hyper_parameters"]["generator_config"]
     assert config["dynamics_members"] == 3 and config["value_steps"] == 40
-    assert config["cvae_precision"] == config["dynamics_precision"] == "fp32"
+    assert config["cvae_precision"] == "fp32" and config["dynamics_precision"] == "bf16"
     said = " ".join(built.output.split())
-    assert "bf16 matmuls are emulated" in said and "cvae_precision, dynamics_precision" in said
-    assert "profile quick with dynamics_members=3, value_steps=40;" in said  # not the moves
+    assert "bf16 matmuls are emulated on cpu" in said and "): cvae_precision set to fp32" in said
+    # the plan line names what the settings changed, not what the machine moved
+    expected = "dynamics_members=3, dynamics_precision=bf16, dynamics_steps=30, value_steps=40;"
+    assert f"profile quick with {expected}" in said
+
+
+def test_an_artifact_built_where_bf16_is_native_is_kept_where_it_is_emulated(
+    tmp_path, tiny_pair, monkeypatch
+):
+    source, _ = tiny_pair
+    short = [f"{name}_steps=20" for name in generators.MODEL_NAMES]
+    command = ["augment", "hopper-m-r", "--source", source, "--profile", "quick"]
+    command += [*(x for s in short for x in ("--set", s)), "--out", str(tmp_path / "a.hdf5")]
+    runner = CliRunner()
+    monkeypatch.setattr(generators, "fast_bf16", lambda device: True)
+    built = runner.invoke(app, command)
+    assert built.exit_code == 0, built.output
+    manifest = read_artifact(tmp_path / "a.hdf5").manifest
+    assert manifest["hyper_parameters"]["generator_config"]["cvae_precision"] == "bf16"
+    monkeypatch.setattr(generators, "fast_bf16", lambda device: False)
+    again = runner.invoke(app, command)
+    assert again.exit_code == 0, again.output
+    assert "is up to date" in " ".join(again.output.split())
+    # another setting is still another artifact
+    other = runner.invoke(app, [*command, "--set", "value_lr=1e-3"])
+    assert other.exit_code != 0 and "built with other settings" in other.output
