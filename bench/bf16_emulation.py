@@ -114,9 +114,7 @@ def main() -> None:
         "cores": os.cpu_count(),
         "native_bf16": fast_bf16(cpu),
         "stage_one_default_here": {
-            "cvae_precision": chosen.cvae_precision,
-            "value_precision": chosen.value_precision,
-            "dynamics_precision": chosen.dynamics_precision,
+            **{k: v for k, v in chosen.to_dict().items() if k.endswith("_precision")},
             "moved_to_fp32": moved,
         },
         "steps_per_run": args.steps,

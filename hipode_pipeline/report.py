@@ -355,9 +355,8 @@ def rliable_resamples(sizes: Sequence[int], reps: int, seed: int) -> list[np.nda
 
 
 def bounds95(samples: np.ndarray) -> list[float]:
-    """The 2.5th and 97.5th percentile of bootstrap `samples`: a 95 % percentile interval."""
-    low, high = np.quantile(samples, [0.025, 0.975])
-    return [float(low), float(high)]
+    """`percentile_interval` of one statistic's bootstrap `samples`, as [low, high]."""
+    return [float(bound) for bound in percentile_interval(np.reshape(samples, (-1, 1)))[:, 0]]
 
 
 def percentile_interval(samples: np.ndarray) -> np.ndarray:
@@ -440,9 +439,8 @@ def improvement(x: np.ndarray, y: np.ndarray, reps: int, seed: int) -> dict[str,
     point = metrics.probability_of_improvement(*pair)
     picks_x, picks_y = rliable_resamples([len(x), len(y)], reps, seed)
     samples = wins(np.ravel(x)[picks_x], np.ravel(y)[picks_y]).mean(axis=(1, 2))
-    low, high = percentile_interval(samples[:, None])[:, 0]
     # the resamples stay for the mean over tasks; not written
-    return {"probability": float(point), "ci": [float(low), float(high)], "_samples": samples}
+    return {"probability": float(point), "ci": bounds95(samples), "_samples": samples}
 
 
 def improvement_within_sources(
@@ -952,8 +950,9 @@ def provenance_lines(report: dict[str, Any]) -> list[str]:
         finished, load = summary["finished_utc"], summary["load_average_1min"]
         lines.append(
             recorded_line(
-                finished["earliest"]
-                and f"Finished between {finished['earliest']} and {finished['latest']} (UTC)",
+                f"Finished between {finished['earliest']} and {finished['latest']} (UTC)"
+                if finished["earliest"]
+                else None,
                 "Finish times not recorded",
                 finished["not_recorded"],
                 "without a finish time",
@@ -961,9 +960,9 @@ def provenance_lines(report: dict[str, Any]) -> list[str]:
         )
         lines.append(
             recorded_line(
-                load["min"] is not None
-                and f"1-minute load average at their finish: {load['min']:.2f} to "
-                f"{load['max']:.2f}",
+                f"1-minute load average at their finish: {load['min']:.2f} to {load['max']:.2f}"
+                if load["min"] is not None
+                else None,
                 "Load average at their finish not recorded",
                 load["not_recorded"],
                 "without one",
@@ -972,10 +971,10 @@ def provenance_lines(report: dict[str, Any]) -> list[str]:
     return [*lines, ""] if lines else []
 
 
-def recorded_line(text: str | bool | None, none_text: str, missing: int, without: str) -> str:
+def recorded_line(text: str | None, none_text: str, missing: int, without: str) -> str:
     """A header line of what the runs recorded, naming how many lack it; `none_text` where
     none does."""
-    if not text:
+    if text is None:
         return f"- {none_text}."
     return f"- {text}" + (f"; {runs_text(missing)} {without}" if missing else "") + "."
 

@@ -26,13 +26,13 @@ from hipode_pipeline import console
 from hipode_pipeline.contract import find_artifact, table_learner, table_row
 from hipode_pipeline.data.bands import check_source_band
 from hipode_pipeline.data.load import load_source
-from hipode_pipeline.device import select_device
+from hipode_pipeline.device import fast_bf16, select_device
 from hipode_pipeline.errors import HipodeError, SettingError, TrainingInterrupted
 from hipode_pipeline.evaluate import EvalResult, check_data_fits_env, evaluate_policies
 from hipode_pipeline.files import display_path, output_lock, write_json_atomic
 from hipode_pipeline.generate import MAX_ETA
 from hipode_pipeline.learners import learner_class
-from hipode_pipeline.learners.base import Learner, fast_bf16
+from hipode_pipeline.learners.base import Learner
 from hipode_pipeline.loggers import check_logger, close_loggers, make_logger
 from hipode_pipeline.machine import cpu_name, utc_now
 from hipode_pipeline.merge import MergedData, load_merged

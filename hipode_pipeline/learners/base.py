@@ -14,7 +14,7 @@ from torch import nn
 
 from hipode_pipeline.data.normalizer import StateNormalizer
 from hipode_pipeline.data.transitions import Transitions
-from hipode_pipeline.device import fast_bf16, select_device
+from hipode_pipeline.device import select_device
 from hipode_pipeline.errors import HipodeError
 from hipode_pipeline.learners.stacked import init_generators
 from hipode_pipeline.overrides import check_fields
@@ -25,7 +25,6 @@ __all__ = [
     "Learner",
     "LearnerConfig",
     "adam",
-    "fast_bf16",
     "polyak_",
     "select_device",
     "as_seed_batch",
